@@ -1,0 +1,1 @@
+"""RT-V3 shared control on ManiSkill3 and LeRobot."""

@@ -1,0 +1,244 @@
+"""SE(3) / SO(3) math used everywhere in the project, batched in torch.
+
+Conventions (the same as ManiSkill's ``Pose``):
+
+* a pose is either a homogeneous matrix ``(..., 4, 4)`` or position ``(..., 3)`` +
+  quaternion ``(..., 4)`` in **wxyz** order;
+* a twist ``xi = [v, w]`` is ``(..., 6)``: translation velocity first, then rotation
+  velocity (the paper's ``a = [v, w]``);
+* ``T_{k+1} = T_k @ se3_exp(xi * dt)`` integrates a **body-frame** twist (paper, Sec. IV-D);
+* ``se3_log(inv(T_a) @ T_b)`` is the body twist (times dt) that moves ``T_a`` onto ``T_b``.
+
+All functions accept any leading batch shape, float32 or float64.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+_EPS = 1e-6
+
+
+def skew(w: torch.Tensor) -> torch.Tensor:
+    """``(..., 3) -> (..., 3, 3)`` cross-product matrix ``[w]_x``."""
+    zero = torch.zeros_like(w[..., 0])
+    wx, wy, wz = w.unbind(-1)
+    return torch.stack(
+        [
+            torch.stack([zero, -wz, wy], -1),
+            torch.stack([wz, zero, -wx], -1),
+            torch.stack([-wy, wx, zero], -1),
+        ],
+        -2,
+    )
+
+
+def _so3_coefficients(theta: torch.Tensor):
+    """Series-safe ``A = sin t / t``, ``B = (1 - cos t) / t^2``, ``C = (t - sin t) / t^3``."""
+    small = theta < 1e-4
+    t = torch.where(small, torch.ones_like(theta), theta)
+    t2 = t * t
+    a = torch.where(small, 1 - theta**2 / 6, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - theta**2 / 24, (1 - torch.cos(t)) / t2)
+    c = torch.where(small, 1.0 / 6 - theta**2 / 120, (t - torch.sin(t)) / (t2 * t))
+    return a, b, c
+
+
+def so3_exp(w: torch.Tensor) -> torch.Tensor:
+    """Rodrigues: rotation vector ``(..., 3)`` -> rotation matrix ``(..., 3, 3)``."""
+    theta = w.norm(dim=-1)
+    a, b, _ = _so3_coefficients(theta)
+    k = skew(w)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand(k.shape)
+    return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
+
+
+def so3_log(rot: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix ``(..., 3, 3)`` -> rotation vector ``(..., 3)`` with angle in [0, pi].
+
+    Goes through the quaternion, which is numerically stable near 0 and near pi.
+    """
+    return quat_to_rotvec(matrix_to_quat(rot))
+
+
+def _left_jacobian_inverse(w: torch.Tensor) -> torch.Tensor:
+    """``V^{-1}`` of the SE(3) exponential for rotation vector ``w``: ``(..., 3, 3)``."""
+    theta = w.norm(dim=-1)
+    small = theta < 1e-4
+    t = torch.where(small, torch.ones_like(theta), theta)
+    half = t / 2
+    coef = torch.where(small, 1.0 / 12 + theta**2 / 720, (1 - half * torch.cos(half) / torch.sin(half)) / (t * t))
+    k = skew(w)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand(k.shape)
+    return eye - 0.5 * k + coef[..., None, None] * (k @ k)
+
+
+def se3_exp(xi: torch.Tensor) -> torch.Tensor:
+    """Twist ``(..., 6)`` ``[v, w]`` -> homogeneous matrix ``(..., 4, 4)``."""
+    v, w = xi[..., :3], xi[..., 3:]
+    theta = w.norm(dim=-1)
+    a, b, c = _so3_coefficients(theta)
+    k = skew(w)
+    kk = k @ k
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand(k.shape)
+    rot = eye + a[..., None, None] * k + b[..., None, None] * kk
+    left_jac = eye + b[..., None, None] * k + c[..., None, None] * kk
+    return make_transform(rot, (left_jac @ v[..., None])[..., 0])
+
+
+def se3_log(transform: torch.Tensor) -> torch.Tensor:
+    """Homogeneous matrix ``(..., 4, 4)`` -> twist ``(..., 6)`` ``[v, w]``."""
+    w = so3_log(transform[..., :3, :3])
+    v = (_left_jacobian_inverse(w) @ transform[..., :3, 3:4])[..., 0]
+    return torch.cat([v, w], -1)
+
+
+def make_transform(rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
+    """``(..., 3, 3)`` rotation + ``(..., 3)`` translation -> ``(..., 4, 4)``."""
+    out = torch.zeros(*rot.shape[:-2], 4, 4, dtype=rot.dtype, device=rot.device)
+    out[..., :3, :3] = rot
+    out[..., :3, 3] = trans
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def se3_inverse(transform: torch.Tensor) -> torch.Tensor:
+    """Inverse of ``(..., 4, 4)`` rigid transforms."""
+    rot_t = transform[..., :3, :3].transpose(-1, -2)
+    return make_transform(rot_t, -(rot_t @ transform[..., :3, 3:4])[..., 0])
+
+
+def relative_transform(reference: torch.Tensor, transform: torch.Tensor) -> torch.Tensor:
+    """``inv(reference) @ transform``: ``transform`` expressed in the ``reference`` frame."""
+    return se3_inverse(reference) @ transform
+
+
+def adjoint(transform: torch.Tensor) -> torch.Tensor:
+    """Adjoint ``(..., 6, 6)`` for ``[v, w]`` twists: ``xi_a = Ad(T_ab) xi_b``."""
+    rot = transform[..., :3, :3]
+    trans = transform[..., :3, 3]
+    out = torch.zeros(*transform.shape[:-2], 6, 6, dtype=transform.dtype, device=transform.device)
+    out[..., :3, :3] = rot
+    out[..., 3:, 3:] = rot
+    out[..., :3, 3:] = skew(trans) @ rot
+    return out
+
+
+def body_twist(transform_from: torch.Tensor, transform_to: torch.Tensor, dt: float) -> torch.Tensor:
+    """Constant body twist ``(..., 6)`` that moves ``transform_from`` to ``transform_to`` in ``dt`` s."""
+    return se3_log(relative_transform(transform_from, transform_to)) / dt
+
+
+def integrate_body_twists(start: torch.Tensor, twists: torch.Tensor, dt: float) -> torch.Tensor:
+    """Poses ``(..., H, 4, 4)`` reached by applying twists ``(..., H, 6)`` from ``start (..., 4, 4)``.
+
+    ``T_t = T_{t-1} Exp(a_t dt)`` (paper, Sec. IV-D).
+    """
+    steps = se3_exp(twists * dt)
+    poses = []
+    current = start
+    for t in range(twists.shape[-2]):
+        current = current @ steps[..., t, :, :]
+        poses.append(current)
+    return torch.stack(poses, -3)
+
+
+# --------------------------------------------------------------------------- quaternions
+
+
+def quat_to_matrix(quat: torch.Tensor) -> torch.Tensor:
+    """Unit quaternion ``(..., 4)`` wxyz -> rotation matrix ``(..., 3, 3)``."""
+    quat = quat / quat.norm(dim=-1, keepdim=True)
+    w, x, y, z = quat.unbind(-1)
+    return torch.stack(
+        [
+            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_to_quat(rot: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix ``(..., 3, 3)`` -> unit quaternion ``(..., 4)`` wxyz with ``w >= 0``."""
+    m = rot
+    trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    # Four candidate solutions; pick the best-conditioned per element (Shepperd's method).
+    cands = torch.stack(
+        [
+            torch.stack([1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
+            torch.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2], m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
+            torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], m[..., 1, 2] + m[..., 2, 1]], -1),
+            torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2]], -1),
+        ],
+        -2,
+    )  # (..., 4 candidates, 4)
+    diag = torch.stack([trace, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], -1)
+    best = diag.argmax(-1)
+    quat = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4))[..., 0, :]
+    quat = quat / quat.norm(dim=-1, keepdim=True)
+    return torch.where(quat[..., :1] < 0, -quat, quat)
+
+
+def quat_to_rotvec(quat: torch.Tensor) -> torch.Tensor:
+    """Unit quaternion ``(..., 4)`` wxyz -> rotation vector ``(..., 3)`` (angle in [0, pi])."""
+    quat = torch.where(quat[..., :1] < 0, -quat, quat)
+    xyz = quat[..., 1:]
+    sin_half = xyz.norm(dim=-1)
+    angle = 2 * torch.atan2(sin_half, quat[..., 0])
+    scale = torch.where(sin_half < _EPS, 2.0 / quat[..., 0].clamp_min(_EPS), angle / sin_half.clamp_min(_EPS))
+    return xyz * scale[..., None]
+
+
+def pose_to_matrix(position: torch.Tensor, quat_wxyz: torch.Tensor) -> torch.Tensor:
+    """ManiSkill pose ``p (..., 3)``, ``q (..., 4)`` wxyz -> ``(..., 4, 4)``."""
+    return make_transform(quat_to_matrix(quat_wxyz), position)
+
+
+def matrix_to_pose(transform: torch.Tensor) -> torch.Tensor:
+    """``(..., 4, 4)`` -> ``(..., 7)`` position + wxyz quaternion."""
+    return torch.cat([transform[..., :3, 3], matrix_to_quat(transform[..., :3, :3])], -1)
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+def matrix_to_euler_xyz(rot: torch.Tensor) -> torch.Tensor:
+    """Extrinsic x-y-z Euler angles ``(..., 3)`` (``R = Rz(c) Ry(b) Rx(a)``)."""
+    sy = (-rot[..., 2, 0]).clamp(-1.0, 1.0)
+    b = torch.asin(sy)
+    a = torch.atan2(rot[..., 2, 1], rot[..., 2, 2])
+    c = torch.atan2(rot[..., 1, 0], rot[..., 0, 0])
+    return torch.stack([a, b, c], -1)
+
+
+PLANNING_ROT_WEIGHT = 0.3 / math.pi
+"""Rotation weight of the trajectory/planning pose distance (NOTES.md, metrics)."""
+SHARED_CONTROL_ROT_WEIGHT = 0.6 / math.pi
+"""Rotation weight of the shared-control success distance (NOTES.md, metrics)."""
+
+
+def pose_distance(
+    transform_ref: torch.Tensor, transform: torch.Tensor, rot_weight: float = PLANNING_ROT_WEIGHT
+) -> torch.Tensor:
+    """The paper's manifold distance ``(...)`` between poses ``(..., 4, 4)`` (appendix, Distance Metric).
+
+    ``E = inv(T_ref) T``; ``d = ||t_E||_1 + rot_weight * ||euler_xyz(E)||_1``. Units: m and rad.
+    """
+    err = relative_transform(transform_ref, transform)
+    return err[..., :3, 3].abs().sum(-1) + rot_weight * matrix_to_euler_xyz(err[..., :3, :3]).abs().sum(-1)
+
+
+def rotate_about_z(transform: torch.Tensor, angle: float) -> torch.Tensor:
+    """Right-multiply ``(..., 4, 4)`` by a rotation of ``angle`` about the local z axis."""
+    rz = torch.tensor(
+        [[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0], [0.0, 0.0, 1.0]],
+        dtype=transform.dtype,
+        device=transform.device,
+    )
+    out = transform.clone()
+    out[..., :3, :3] = transform[..., :3, :3] @ rz
+    return out

@@ -1,0 +1,94 @@
+"""Plain description of a clutter scene's collision geometry.
+
+One description serves the simulator (ManiSkill actors), the grasp sampler's hand
+collision check and the motion planner's collision model, so they agree on what is
+where. Frames: object shapes are given in the object frame; object poses in the world
+frame of the ManiSkill scene (z up, table surface at z = 0).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import trimesh
+
+ShapeKind = Literal["box", "sphere", "cylinder", "capsule", "convex"]
+
+
+@dataclass
+class CollisionShape:
+    """One convex collision primitive of an object.
+
+    ``params`` by kind (metres): box ``(hx, hy, hz)`` half sizes; sphere ``(r,)``;
+    cylinder and capsule ``(r, half_length)`` with the axis along the local **x** axis
+    (SAPIEN's convention); convex: ``()`` and ``vertices (V, 3)``.
+    ``local_pose`` ``(4, 4)`` places the shape in the object frame.
+    """
+
+    kind: ShapeKind
+    params: tuple[float, ...] = ()
+    local_pose: np.ndarray = field(default_factory=lambda: np.eye(4))
+    vertices: np.ndarray | None = None
+
+    def to_trimesh(self) -> trimesh.Trimesh:
+        """A triangle mesh of this shape in the object frame."""
+        if self.kind == "box":
+            mesh = trimesh.creation.box(extents=2 * np.asarray(self.params))
+        elif self.kind == "sphere":
+            mesh = trimesh.creation.icosphere(subdivisions=2, radius=self.params[0])
+        elif self.kind in ("cylinder", "capsule"):
+            radius, half_length = self.params
+            if self.kind == "cylinder":
+                mesh = trimesh.creation.cylinder(radius=radius, height=2 * half_length, sections=24)
+            else:
+                mesh = trimesh.creation.capsule(radius=radius, height=2 * half_length, count=[24, 12])
+            # trimesh builds along z; SAPIEN's axis is x.
+            mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+        elif self.kind == "convex":
+            mesh = trimesh.convex.convex_hull(np.asarray(self.vertices))
+        else:
+            raise ValueError(f"unknown collision shape kind {self.kind!r}")
+        mesh.apply_transform(self.local_pose)
+        return mesh
+
+
+@dataclass
+class ObjectGeometry:
+    """A rigid object: its convex parts, a visual mesh and a colour, in its own frame."""
+
+    name: str
+    shapes: list[CollisionShape]
+    visual_mesh: trimesh.Trimesh
+    color: tuple[float, float, float, float] = (0.6, 0.6, 0.6, 1.0)
+    density: float = 500.0
+    mesh_file: str | None = None
+    """Source mesh file for objects loaded from a folder (None for procedural ones)."""
+
+    def collision_mesh(self) -> trimesh.Trimesh:
+        """All convex parts merged into one mesh (object frame)."""
+        return trimesh.util.concatenate([s.to_trimesh() for s in self.shapes])
+
+
+@dataclass
+class SceneGeometry:
+    """Objects placed in the world plus the table top as an obstacle.
+
+    ``object_poses`` ``(n, 4, 4)`` world-from-object transforms. The table occupies
+    ``z <= 0`` over ``table_half_size`` around ``table_center``.
+    """
+
+    objects: list[ObjectGeometry]
+    object_poses: np.ndarray
+    table_center: np.ndarray = field(default_factory=lambda: np.array([-0.12, 0.0, -0.02]))
+    table_half_size: np.ndarray = field(default_factory=lambda: np.array([0.82, 1.2, 0.02]))
+
+    def world_meshes(self) -> list[trimesh.Trimesh]:
+        """One collision mesh per object, in the world frame."""
+        meshes = []
+        for obj, pose in zip(self.objects, self.object_poses):
+            mesh = obj.collision_mesh()
+            mesh.apply_transform(pose)
+            meshes.append(mesh)
+        return meshes
