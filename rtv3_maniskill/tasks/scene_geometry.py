@@ -14,6 +14,16 @@ from typing import Literal
 import numpy as np
 import trimesh
 
+# ManiSkill's TableSceneBuilder: a kinematic box, top at z = 0, x in [-0.7245, 0.4845],
+# y in [-1.209, 1.209]; the Panda base stands on it at (-0.615, 0, 0). Only its top
+# slab matters for collisions.
+TABLE_TOP_CENTER = np.array([-0.12, 0.0, -0.025])
+TABLE_TOP_HALF_SIZE = np.array([0.6045, 1.209, 0.025])
+ROBOT_BASE_POSITION = np.array([-0.615, 0.0, 0.0])
+WORKSPACE_CENTER = np.array([-0.05, 0.0, 0.15])
+"""Centre of the 30 x 30 x 30 cm workspace cube (world frame, resting on the table)."""
+WORKSPACE_HALF_SIZE = 0.15
+
 ShapeKind = Literal["box", "sphere", "cylinder", "capsule", "convex"]
 
 
@@ -81,8 +91,8 @@ class SceneGeometry:
 
     objects: list[ObjectGeometry]
     object_poses: np.ndarray
-    table_center: np.ndarray = field(default_factory=lambda: np.array([-0.12, 0.0, -0.02]))
-    table_half_size: np.ndarray = field(default_factory=lambda: np.array([0.82, 1.2, 0.02]))
+    table_center: np.ndarray = field(default_factory=lambda: TABLE_TOP_CENTER.copy())
+    table_half_size: np.ndarray = field(default_factory=lambda: TABLE_TOP_HALF_SIZE.copy())
 
     def world_meshes(self) -> list[trimesh.Trimesh]:
         """One collision mesh per object, in the world frame."""

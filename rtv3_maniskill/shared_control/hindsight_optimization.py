@@ -1,0 +1,249 @@
+"""Hindsight Optimization (HO) baseline: Javdani et al. 2018, "Shared autonomy via hindsight optimization".
+
+Written from the published method and the constants in NOTES.md (original code's values):
+
+* per goal a Huber cost-to-go on the distance ``d`` (translation: m; rotation: rad,
+  quaternion angle, weighted by ``rotation_weight``):
+  ``V(d) = 0.5 (m/delta) d^2 + c d`` for ``d <= delta``, else ``(m + c) d - m delta / 2``;
+* ``Q(g, u) = action_apply_time * cost(d_now) + V(d after applying u for action_apply_time)``
+  where ``cost(d) = dV/dd`` is the cost rate of moving at unit speed (the original's
+  ``ACTION_APPLY_TIME * cost``, apply time 0.1 s);
+* belief: ``log p(g) -= Q_g - V_g`` every step, normalised, one goal capped at
+  ``max_goal_probability`` (0.99) with the excess spread evenly over the others;
+* per goal assistance ``a_g = -grad Q``: translation gradient divided by 40 and scaled
+  down linearly within 2 cm; rotation gradient divided by 0.05 and scaled down within pi/12;
+* blend ``u = sum_g p(g) a_g + u_user``.
+
+Several target poses may belong to one goal (``target_groups``); a goal uses its target
+with the smallest ``V`` (NOTES.md). ``variant="rtv3_authors"``: one goal per grasp,
+translation-only cost with ``m = 1.5, delta = 0.10, c = 0.1`` (the rotation of the output
+is the user's own).
+
+Frames: goals and EE pose are world ``(4, 4)``; twists are EE body frame ``[v, w]``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import torch
+
+from rtv3_maniskill.se3 import se3_exp, so3_log
+from rtv3_maniskill.shared_control.twist_utils import as_pose, as_poses, as_twist, check_speed_limits, clamp_twist_speed
+
+
+@dataclass(frozen=True)
+class HuberCost:
+    """Huber cost-to-go ``V(d)`` with linear multiplier ``m``, switch ``delta`` and constant ``c``."""
+
+    linear_multiplier: float
+    delta: float
+    constant: float
+
+    def value(self, d: torch.Tensor) -> torch.Tensor:
+        """``V(d)``."""
+        m, delta, c = self.linear_multiplier, self.delta, self.constant
+        quad = 0.5 * (m / delta) * d * d + c * d
+        lin = (m + c) * d - 0.5 * m * delta
+        return torch.where(d <= delta, quad, lin)
+
+    def rate(self, d: torch.Tensor) -> torch.Tensor:
+        """``dV/dd``: cost per unit distance."""
+        m, delta, c = self.linear_multiplier, self.delta, self.constant
+        return torch.where(d <= delta, (m / delta) * d + c, torch.full_like(d, m + c))
+
+
+@dataclass(frozen=True)
+class HOConstants:
+    """All constants of one HO variant."""
+
+    translation: HuberCost
+    rotation: HuberCost | None
+    rotation_weight: float = 0.07
+    action_apply_time: float = 0.1
+    translation_gradient_divisor: float = 40.0
+    rotation_gradient_divisor: float = 0.05
+    translation_scaling_distance: float = 0.02
+    rotation_scaling_angle: float = math.pi / 12
+    max_goal_probability: float = 0.99
+
+
+VARIANTS: dict[str, HOConstants] = {
+    "javdani2018": HOConstants(
+        translation=HuberCost(2.25, 0.07, 0.2),
+        rotation=HuberCost(0.2, math.pi / 32, 0.01),
+    ),
+    "rtv3_authors": HOConstants(translation=HuberCost(1.5, 0.10, 0.1), rotation=None),
+}
+"""Known variants: the original constants and the RT-V3 authors' translation-only one."""
+
+
+def _rotation_angle(rot_a: torch.Tensor, rot_b: torch.Tensor) -> torch.Tensor:
+    """Angle (rad, [0, pi]) of ``rot_a^T rot_b`` for ``(..., 3, 3)``."""
+    return so3_log(rot_a.transpose(-1, -2) @ rot_b).norm(dim=-1)
+
+
+class HindsightOptimization:
+    """HO shared autonomy over G goals.
+
+    Args:
+        goals: ``(N, 4, 4)`` target poses (world), N >= 1.
+        variant: ``"javdani2018"`` (original constants) or ``"rtv3_authors"``.
+        dt: control period (s) of the caller's loop. Kept for reference; the belief update is
+            the original per-step one and the look-ahead uses ``action_apply_time`` (0.1 s).
+        target_groups: optional ``(N,)`` goal id of every target (targets with the same id form
+            one goal, e.g. the grasps of one object). Default: every target is its own goal.
+        max_linear_speed, max_angular_speed: optional norm clips of the output.
+    """
+
+    def __init__(
+        self,
+        goals: Any,
+        variant: str = "javdani2018",
+        dt: float = 0.05,
+        target_groups: Sequence[int] | None = None,
+        max_linear_speed: float | None = None,
+        max_angular_speed: float | None = None,
+    ) -> None:
+        if variant not in VARIANTS:
+            raise ValueError(f"unknown HO variant {variant!r}; known: {', '.join(VARIANTS)}")
+        if not dt > 0:
+            raise ValueError(f"dt must be positive, got {dt}")
+        check_speed_limits(max_linear_speed, max_angular_speed)
+        self.targets = as_poses(goals, "goals")
+        n = self.targets.shape[0]
+        if target_groups is None:
+            group_ids = torch.arange(n)
+        else:
+            group_ids = torch.as_tensor(list(target_groups), dtype=torch.long)
+            if group_ids.shape != (n,):
+                raise ValueError(f"target_groups must have one id per goal pose ({n}), got shape {tuple(group_ids.shape)}")
+        unique, self._group_index = torch.unique(group_ids, return_inverse=True)
+        self.goal_ids = unique
+        """``(G,)`` goal ids in belief order."""
+        self.variant = variant
+        self.constants = VARIANTS[variant]
+        self.dt = dt
+        self.max_linear_speed = max_linear_speed
+        self.max_angular_speed = max_angular_speed
+        self.reset()
+
+    @property
+    def num_goals(self) -> int:
+        return int(self.goal_ids.shape[0])
+
+    @property
+    def belief(self) -> torch.Tensor:
+        """``(G,)`` goal probabilities."""
+        return self._log_belief.exp()
+
+    def reset(self) -> None:
+        """Uniform belief."""
+        g = self.num_goals
+        self._log_belief = torch.full((g,), -math.log(g), dtype=torch.float64)
+        self.last_assistance = torch.zeros(6, dtype=torch.float64)
+        """``(6,)`` the blended assistance ``sum_g p(g) a_g`` of the last step."""
+
+    # ------------------------------------------------------------------ costs
+
+    def _distances(self, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per target: translation distance (m) and rotation angle (rad) ``(N,), (N,)``."""
+        d_t = (self.targets[:, :3, 3] - pose[:3, 3]).norm(dim=-1)
+        d_r = _rotation_angle(pose[:3, :3].expand_as(self.targets[:, :3, :3]), self.targets[:, :3, :3])
+        return d_t, d_r
+
+    def target_values(self, pose: torch.Tensor) -> torch.Tensor:
+        """``V`` of every target ``(N,)`` at EE pose ``(4, 4)``."""
+        k = self.constants
+        d_t, d_r = self._distances(pose)
+        value = k.translation.value(d_t)
+        if k.rotation is not None:
+            value = value + k.rotation_weight * k.rotation.value(d_r)
+        return value
+
+    def _target_costs(self, pose: torch.Tensor) -> torch.Tensor:
+        """One-step cost ``action_apply_time * cost rate`` of every target ``(N,)``."""
+        k = self.constants
+        d_t, d_r = self._distances(pose)
+        cost = k.translation.rate(d_t)
+        if k.rotation is not None:
+            cost = cost + k.rotation_weight * k.rotation.rate(d_r)
+        return k.action_apply_time * cost
+
+    def _best_targets(self, values: torch.Tensor) -> torch.Tensor:
+        """``(G,)`` index of the smallest-V target of every goal."""
+        best = torch.empty(self.num_goals, dtype=torch.long)
+        for g in range(self.num_goals):
+            idx = torch.nonzero(self._group_index == g).flatten()
+            best[g] = idx[values[idx].argmin()]
+        return best
+
+    # ------------------------------------------------------------------ belief
+
+    def _update_belief(self, q_minus_v: torch.Tensor) -> None:
+        log_b = self._log_belief - q_minus_v
+        log_b = log_b - torch.logsumexp(log_b, 0)
+        g = self.num_goals
+        cap = self.constants.max_goal_probability
+        if g > 1:
+            probs = log_b.exp()
+            top = int(probs.argmax())
+            if probs[top] > cap:
+                excess = probs[top] - cap
+                others = torch.arange(g) != top
+                probs[others] = probs[others] + excess / (g - 1)
+                probs[top] = cap
+                log_b = probs.clamp_min(1e-300).log()
+        self._log_belief = log_b
+
+    # ------------------------------------------------------------------ assistance
+
+    def _assistance(self, pose: torch.Tensor, pose_after: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """``-grad Q`` for one target, as a body twist of the current pose ``(6,)``."""
+        k = self.constants
+        rot_t = pose[:3, :3].T
+        out = torch.zeros(6, dtype=torch.float64)
+        diff = pose_after[:3, 3] - target[:3, 3]
+        dist = diff.norm()
+        if dist > 1e-9:
+            grad = k.translation.rate(dist) * diff / dist / k.translation_gradient_divisor
+            if dist < k.translation_scaling_distance:
+                grad = grad * dist / k.translation_scaling_distance
+            out[:3] = rot_t @ (-grad)
+        if k.rotation is not None:
+            # Rotation error in the after-action body frame, moved to the current body frame.
+            err = so3_log(pose_after[:3, :3].T @ target[:3, :3])
+            angle = err.norm()
+            if angle > 1e-9:
+                magnitude = k.rotation_weight * k.rotation.rate(angle) / k.rotation_gradient_divisor
+                if angle < k.rotation_scaling_angle:
+                    magnitude = magnitude * angle / k.rotation_scaling_angle
+                axis_body = rot_t @ pose_after[:3, :3] @ (err / angle)
+                out[3:] = magnitude * axis_body
+        return out
+
+    def step(self, ee_pose: Any, user_twist: Any) -> torch.Tensor:
+        """Update the belief with the user command and return the blended robot twist.
+
+        Args:
+            ee_pose: ``(4, 4)`` current EE pose, world.
+            user_twist: ``(6,)`` user body twist ``[v, w]``.
+        Returns:
+            ``(6,)`` float64 body twist ``sum_g p(g) a_g + u_user`` (norm-clipped if limits were set).
+        """
+        pose = as_pose(ee_pose)
+        user = as_twist(user_twist, "user_twist")
+        k = self.constants
+        pose_after = pose @ se3_exp(user * k.action_apply_time)
+        values_now = self.target_values(pose)
+        best = self._best_targets(values_now)
+        q = self._target_costs(pose)[best] + self.target_values(pose_after)[best]
+        self._update_belief(q - values_now[best])
+        belief = self.belief
+        assistance = torch.zeros(6, dtype=torch.float64)
+        for g in range(self.num_goals):
+            assistance = assistance + belief[g] * self._assistance(pose, pose_after, self.targets[best[g]])
+        self.last_assistance = assistance
+        return clamp_twist_speed(assistance + user, self.max_linear_speed, self.max_angular_speed)

@@ -1,0 +1,453 @@
+"""Posterior decision making: fuse a user command with the prior's step-0 twist mixture.
+
+Paper, Sec. "Posterior Decision Making". Per maneuver class ``k`` (B batch, K classes):
+
+* translation (Eq. K_v):   ``kalman_gain = Sigma_k (Sigma_k + S_u)^-1``,
+  ``mu_k' = mu_k + K (v_u - mu_k)``, ``Sigma_k' = (I - K) Sigma_k``;
+* rotation, conditioned on the fused translation (Eq. K_w): ``(omega_k, Gamma_k) =
+  rotation_given_translation(mu_k')``, then the same update with ``w_u`` and ``G_u``;
+* class weights (Eq. p(z | h_0, a_0^u)):
+  ``pi_k' ∝ pi_k N(v_u; mu_k, Sigma_k + S_u) N(w_u; omega_k, Gamma_k + G_u)``.
+
+Reading of the class weights. The paper writes the class likelihood with the *prior*
+component ``N(v_u; mu_z, Sigma_z) N(w_u; omega_z, Gamma_z)``; NOTES.md (authors' code)
+writes the rotation term at the fused translation ``omega_k'``. We follow the paper's
+choice of the prior component (rotation Gaussian evaluated at the prior translation mean
+``mu_k``, ``reweight_rotation_at="prior"``, the default) and add the user covariance to
+both terms, which is the exact marginal ``∫ N(u; a, S_u) N(a; mu, Sigma) da`` under the
+paper's own likelihood model ``p(u | a) = N(u; a, Sigma_sys)``. ``"fused"`` gives the
+NOTES.md variant.
+
+All computation runs in float64; inputs may be float32. Covariances are symmetrised and
+their eigenvalues clamped to ``[MIN_VARIANCE, MAX_VARIANCE]`` before use, so no step can
+produce NaN from a near-singular network output.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from rtv3_maniskill.twist_mixture import TwistMixture
+
+MIN_VARIANCE = 1e-8
+"""Eigenvalue floor for every covariance (units m^2/s^2 or rad^2/s^2)."""
+MAX_VARIANCE = 1e6
+"""Eigenvalue ceiling for every covariance."""
+
+_LOG_2PI = math.log(2 * math.pi)
+
+
+# --------------------------------------------------------------------------- Gaussians
+
+
+def regularize_covariance(cov: torch.Tensor, min_var: float = MIN_VARIANCE, max_var: float = MAX_VARIANCE) -> torch.Tensor:
+    """Symmetrise ``(..., D, D)`` and clamp its eigenvalues to ``[min_var, max_var]``."""
+    sym = 0.5 * (cov + cov.transpose(-1, -2))
+    eigval, eigvec = torch.linalg.eigh(sym)
+    eigval = eigval.clamp(min_var, max_var)
+    return (eigvec * eigval[..., None, :]) @ eigvec.transpose(-1, -2)
+
+
+def gaussian_log_prob(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+    """``log N(x; mean, cov)`` for ``x, mean (..., D)``, ``cov (..., D, D)`` SPD -> ``(...)``."""
+    chol = torch.linalg.cholesky(cov)
+    diff = (x - mean).unsqueeze(-1)
+    white = torch.linalg.solve_triangular(chol, diff, upper=False).squeeze(-1)
+    half_logdet = torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)
+    dim = x.shape[-1]
+    return -0.5 * (dim * _LOG_2PI + (white * white).sum(-1)) - half_logdet
+
+
+def mahalanobis_sq(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+    """Squared Mahalanobis distance ``(x - mean)^T cov^-1 (x - mean)`` -> ``(...)``."""
+    chol = torch.linalg.cholesky(cov)
+    white = torch.linalg.solve_triangular(chol, (x - mean).unsqueeze(-1), upper=False).squeeze(-1)
+    return (white * white).sum(-1)
+
+
+def gaussian_entropy(cov: torch.Tensor) -> torch.Tensor:
+    """Differential entropy ``0.5 log det(2 pi e cov)`` of ``(..., D, D)`` -> ``(...)`` nats."""
+    dim = cov.shape[-1]
+    return 0.5 * (dim * (1.0 + _LOG_2PI) + torch.linalg.slogdet(cov)[1])
+
+
+def kalman_update(
+    mean: torch.Tensor, cov: torch.Tensor, observation: torch.Tensor, observation_cov: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One Kalman update of ``N(mean, cov)`` with a direct observation ``N(observation; x, observation_cov)``.
+
+    Shapes ``(..., D)`` / ``(..., D, D)``. Returns ``(mean', cov', kalman_gain)`` with
+    ``kalman_gain = cov (cov + observation_cov)^-1`` (paper Eq. K_v / K_w). The covariance
+    uses the Joseph form ``(I-K) cov (I-K)^T + K R K^T``, algebraically equal to the paper's
+    ``(I - K) cov`` but symmetric positive definite in floating point.
+    """
+    innovation_cov = cov + observation_cov
+    # cov and innovation_cov are symmetric: K = cov S^-1 = (S^-1 cov)^T.
+    kalman_gain = torch.linalg.solve(innovation_cov, cov).transpose(-1, -2)
+    new_mean = mean + (kalman_gain @ (observation - mean).unsqueeze(-1)).squeeze(-1)
+    eye = torch.eye(mean.shape[-1], dtype=mean.dtype, device=mean.device)
+    i_minus_k = eye - kalman_gain
+    new_cov = i_minus_k @ cov @ i_minus_k.transpose(-1, -2) + kalman_gain @ observation_cov @ kalman_gain.transpose(-1, -2)
+    return new_mean, regularize_covariance(new_cov), kalman_gain
+
+
+# --------------------------------------------------------------------------- mixtures
+
+
+@dataclass
+class FactorizedTwistMixture:
+    """A step-0 twist mixture with the rotation Gaussian fixed per class (B batch, K classes).
+
+    Each class is ``N(v; trans_mean_k, trans_cov_k) N(w; rot_mean_k, rot_cov_k)``. For the
+    posterior, the rotation Gaussian is the one conditioned on the fused translation mean
+    (a first-order reading of the paper's translation-conditioned rotation). float64.
+
+    Attributes:
+        log_weights: ``(B, K)`` normalised log class probabilities.
+        trans_mean, trans_cov: ``(B, K, 3)``, ``(B, K, 3, 3)`` in m/s, EE body frame.
+        rot_mean, rot_cov: ``(B, K, 3)``, ``(B, K, 3, 3)`` in rad/s, EE body frame.
+        prior_log_weights: ``(B, K)`` the prior's class log-probabilities (before fusion).
+        trans_mahalanobis_sq: ``(B, K)`` squared Mahalanobis distance of the user translation
+            to each class under ``Sigma_k + S_u`` (``None`` for a prior-only mixture).
+    """
+
+    log_weights: torch.Tensor
+    trans_mean: torch.Tensor
+    trans_cov: torch.Tensor
+    rot_mean: torch.Tensor
+    rot_cov: torch.Tensor
+    prior_log_weights: torch.Tensor
+    trans_mahalanobis_sq: torch.Tensor | None = None
+
+    @property
+    def weights(self) -> torch.Tensor:
+        """``(B, K)`` class probabilities."""
+        return self.log_weights.exp()
+
+    @property
+    def means(self) -> torch.Tensor:
+        """``(B, K, 6)`` ``[v, w]`` component means."""
+        return torch.cat([self.trans_mean, self.rot_mean], -1)
+
+
+def _check_mixture(mixture: TwistMixture) -> tuple[int, int]:
+    lw, mu, cov = mixture.log_weights, mixture.trans_mean, mixture.trans_cov
+    if lw.ndim != 2:
+        raise ValueError(f"TwistMixture.log_weights must be (B, K), got {tuple(lw.shape)}")
+    b, k = lw.shape
+    if k == 0:
+        raise ValueError("TwistMixture has no classes (K = 0)")
+    if mu.shape != (b, k, 3) or cov.shape != (b, k, 3, 3):
+        raise ValueError(
+            f"TwistMixture shapes disagree: log_weights {tuple(lw.shape)}, trans_mean {tuple(mu.shape)} "
+            f"(expected {(b, k, 3)}), trans_cov {tuple(cov.shape)} (expected {(b, k, 3, 3)})"
+        )
+    for name, t in (("log_weights", lw), ("trans_mean", mu), ("trans_cov", cov)):
+        if torch.isnan(t).any() or (name != "log_weights" and not torch.isfinite(t).all()):
+            raise ValueError(f"TwistMixture.{name} contains NaN or inf")
+    return b, k
+
+
+def _rotation_at(mixture: TwistMixture, translation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Call ``rotation_given_translation`` and validate/regularise its output (float64)."""
+    b, k = translation.shape[:2]
+    dtype = mixture.trans_mean.dtype
+    omega, gamma = mixture.rotation_given_translation(translation.to(dtype))
+    if omega.shape != (b, k, 3) or gamma.shape != (b, k, 3, 3):
+        raise ValueError(
+            f"rotation_given_translation must return (B, K, 3) and (B, K, 3, 3), got "
+            f"{tuple(omega.shape)} and {tuple(gamma.shape)}"
+        )
+    if not (torch.isfinite(omega).all() and torch.isfinite(gamma).all()):
+        raise ValueError("rotation_given_translation returned NaN or inf")
+    return omega.double(), regularize_covariance(gamma.double())
+
+
+def _normalize_log_weights(log_weights: torch.Tensor) -> torch.Tensor:
+    return log_weights - torch.logsumexp(log_weights, -1, keepdim=True)
+
+
+def prior_twist_mixture(mixture: TwistMixture) -> FactorizedTwistMixture:
+    """The prior step-0 mixture with each class's rotation Gaussian at its translation mean ``mu_k``."""
+    _check_mixture(mixture)
+    lw = _normalize_log_weights(mixture.log_weights.double())
+    mu = mixture.trans_mean.double()
+    sigma = regularize_covariance(mixture.trans_cov.double())
+    omega, gamma = _rotation_at(mixture, mu)
+    return FactorizedTwistMixture(lw, mu, sigma, omega, gamma, lw.clone())
+
+
+def fuse_user_command(
+    mixture: TwistMixture,
+    user_twist: torch.Tensor,
+    user_trans_cov: torch.Tensor,
+    user_rot_cov: torch.Tensor,
+    reweight_rotation_at: str = "prior",
+) -> FactorizedTwistMixture:
+    """Posterior step-0 mixture given the user command (paper, Sec. Posterior Decision Making).
+
+    Args:
+        mixture: the prior's step-0 mixture, B batch, K classes.
+        user_twist: ``(B, 6)`` user command ``[v_u, w_u]``, EE body frame.
+        user_trans_cov: ``(B, 3, 3)`` ``S_u`` (the paper's Sigma^sys).
+        user_rot_cov: ``(B, 3, 3)`` ``G_u`` (the paper's Gamma^sys).
+        reweight_rotation_at: ``"prior"`` (paper: rotation term of the class likelihood at
+            ``omega_k(mu_k)``) or ``"fused"`` (NOTES.md: at ``omega_k(mu_k')``).
+    Returns:
+        The fused mixture; ``log_weights`` are ``log pi_k'``.
+    """
+    b, k = _check_mixture(mixture)
+    if reweight_rotation_at not in ("prior", "fused"):
+        raise ValueError(f"reweight_rotation_at must be 'prior' or 'fused', got {reweight_rotation_at!r}")
+    user = user_twist.double()
+    if user.shape != (b, 6):
+        raise ValueError(f"user_twist must be ({b}, 6) to match the mixture, got {tuple(user.shape)}")
+    if not torch.isfinite(user).all():
+        raise ValueError("user_twist contains NaN or inf")
+    for name, c in (("user_trans_cov", user_trans_cov), ("user_rot_cov", user_rot_cov)):
+        if c.shape != (b, 3, 3):
+            raise ValueError(f"{name} must be ({b}, 3, 3), got {tuple(c.shape)}")
+        if not torch.isfinite(c).all():
+            raise ValueError(f"{name} contains NaN or inf")
+    s_u = regularize_covariance(user_trans_cov.double())[:, None].expand(b, k, 3, 3)
+    g_u = regularize_covariance(user_rot_cov.double())[:, None].expand(b, k, 3, 3)
+    v_u = user[:, None, :3].expand(b, k, 3)
+    w_u = user[:, None, 3:].expand(b, k, 3)
+
+    prior_lw = _normalize_log_weights(mixture.log_weights.double())
+    mu = mixture.trans_mean.double()
+    sigma = regularize_covariance(mixture.trans_cov.double())
+
+    # Translation: Kalman fusion per class (Eq. K_v).
+    mu_f, sigma_f, _ = kalman_update(mu, sigma, v_u, s_u)
+    # Rotation conditioned on the fused translation, then fused with w_u (Eq. K_w).
+    omega_f, gamma_f = _rotation_at(mixture, mu_f)
+    omega_post, gamma_post = kalman_update(omega_f, gamma_f, w_u, g_u)[:2]
+
+    # Class re-weighting (Eq. p(z | h_0, a_0^u)), in log space.
+    trans_pred_cov = regularize_covariance(sigma + s_u)
+    log_lik_v = gaussian_log_prob(v_u, mu, trans_pred_cov)
+    if reweight_rotation_at == "prior":
+        omega_r, gamma_r = _rotation_at(mixture, mu)
+    else:
+        omega_r, gamma_r = omega_f, gamma_f
+    log_lik_w = gaussian_log_prob(w_u, omega_r, regularize_covariance(gamma_r + g_u))
+    post_lw = prior_lw + log_lik_v + log_lik_w
+    post_lw = torch.where(torch.isnan(post_lw), torch.full_like(post_lw, -math.inf), post_lw)
+    no_support = ~torch.isfinite(post_lw).any(-1, keepdim=True)
+    post_lw = torch.where(no_support, prior_lw, post_lw)  # every class -inf: keep the prior
+    post_lw = _normalize_log_weights(post_lw)
+
+    return FactorizedTwistMixture(
+        log_weights=post_lw,
+        trans_mean=mu_f,
+        trans_cov=sigma_f,
+        rot_mean=omega_post,
+        rot_cov=gamma_post,
+        prior_log_weights=prior_lw,
+        trans_mahalanobis_sq=mahalanobis_sq(v_u, mu, trans_pred_cov),
+    )
+
+
+# --------------------------------------------------------------------------- mode search
+
+
+def _component_precisions(m: FactorizedTwistMixture) -> torch.Tensor:
+    """``(B, K, 6, 6)`` block-diagonal precision of each class."""
+    b, k = m.log_weights.shape
+    prec = torch.zeros(b, k, 6, 6, dtype=m.trans_cov.dtype, device=m.trans_cov.device)
+    prec[..., :3, :3] = torch.linalg.inv(m.trans_cov)
+    prec[..., 3:, 3:] = torch.linalg.inv(m.rot_cov)
+    return 0.5 * (prec + prec.transpose(-1, -2))
+
+
+def _component_log_densities(x: torch.Tensor, m: FactorizedTwistMixture) -> torch.Tensor:
+    """``x (B, S, 6)`` -> ``(B, S, K)`` ``log pi_k + log N_k(x)``."""
+    xs = x[:, :, None, :]
+    lp_v = gaussian_log_prob(xs[..., :3], m.trans_mean[:, None], m.trans_cov[:, None])
+    lp_w = gaussian_log_prob(xs[..., 3:], m.rot_mean[:, None], m.rot_cov[:, None])
+    return m.log_weights[:, None, :] + lp_v + lp_w
+
+
+def mixture_log_density(x: torch.Tensor, mixture: FactorizedTwistMixture) -> torch.Tensor:
+    """Log density of the 6-D mixture at ``x (B, S, 6)`` -> ``(B, S)``."""
+    return torch.logsumexp(_component_log_densities(x.double(), mixture), -1)
+
+
+def mixture_mode(mixture: FactorizedTwistMixture, num_starts: int = 3, num_iters: int = 10) -> torch.Tensor:
+    """Approximate mode ``(B, 6)`` of the 6-D mixture (the executed action).
+
+    The authors grid-search the mode. Here: evaluate the mixture density at every
+    component mean, start from the ``num_starts`` best means, and run ``num_iters``
+    fixed-point (Gaussian mean-shift) iterations
+    ``x <- (sum_k r_k(x) P_k)^-1 sum_k r_k(x) P_k m_k`` (``r_k`` responsibilities,
+    ``P_k`` precisions), whose fixed points are the stationary points of the density.
+    The highest-density point among the start means and the iterates is returned, so
+    the result is never worse than the best component mean.
+    """
+    if num_starts < 1 or num_iters < 0:
+        raise ValueError(f"num_starts must be >= 1 and num_iters >= 0, got {num_starts}, {num_iters}")
+    means = mixture.means  # (B, K, 6)
+    b, k, _ = means.shape
+    at_means = torch.logsumexp(_component_log_densities(means, mixture), -1)  # (B, K)
+    s = min(num_starts, k)
+    start_idx = at_means.topk(s, dim=-1).indices  # (B, S)
+    x = torch.gather(means, 1, start_idx[..., None].expand(b, s, 6))
+    candidates = [x]
+    precisions = _component_precisions(mixture)  # (B, K, 6, 6)
+    prec_means = (precisions @ means.unsqueeze(-1)).squeeze(-1)  # (B, K, 6)
+    for _ in range(num_iters):
+        resp = torch.softmax(_component_log_densities(x, mixture), -1)  # (B, S, K)
+        a = torch.einsum("bsk,bkij->bsij", resp, precisions)
+        rhs = torch.einsum("bsk,bki->bsi", resp, prec_means)
+        x = torch.linalg.solve(a, rhs.unsqueeze(-1)).squeeze(-1)
+        candidates.append(x)
+    cand = torch.cat(candidates, 1)  # (B, S*(iters+1), 6)
+    dens = mixture_log_density(cand, mixture)
+    dens = torch.where(torch.isfinite(dens), dens, torch.full_like(dens, -math.inf))
+    best = dens.argmax(-1)
+    return cand[torch.arange(b), best]
+
+
+# --------------------------------------------------------------------------- entropy
+
+
+def mixture_entropy_bounds(
+    log_weights: torch.Tensor, means: torch.Tensor, covs: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower and upper bounds ``(B,), (B,)`` (nats) on the entropy of a Gaussian mixture.
+
+    ``log_weights (B, K)``, ``means (B, K, D)``, ``covs (B, K, D, D)``. Huber et al. 2008:
+    upper ``sum_k pi_k (H(N_k) - log pi_k)``; lower
+    ``-sum_i pi_i log sum_j pi_j N(m_i; m_j, C_i + C_j)``.
+    """
+    lw = _normalize_log_weights(log_weights.double())
+    w = lw.exp()
+    covs = covs.double()
+    means = means.double()
+    safe_lw = torch.where(w > 0, lw, torch.zeros_like(lw))
+    upper = (w * (gaussian_entropy(covs) - safe_lw)).sum(-1)
+    pair_cov = regularize_covariance(covs[:, :, None] + covs[:, None, :])  # (B, K, K, D, D)
+    pair_lp = gaussian_log_prob(means[:, :, None], means[:, None, :], pair_cov)  # (B, K, K)
+    lower = -(w * torch.logsumexp(lw[:, None, :] + pair_lp, -1)).sum(-1)
+    return lower, upper
+
+
+def translation_entropy_bounds(mixture: FactorizedTwistMixture) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entropy bounds ``(B,), (B,)`` of the translation marginal (the paper's "Trans Entropy")."""
+    return mixture_entropy_bounds(mixture.log_weights, mixture.trans_mean, mixture.trans_cov)
+
+
+def rotation_entropy_bounds(mixture: FactorizedTwistMixture) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entropy bounds ``(B,), (B,)`` of the rotation marginal, each class's rotation Gaussian
+    taken at its (fused) translation mean."""
+    return mixture_entropy_bounds(mixture.log_weights, mixture.rot_mean, mixture.rot_cov)
+
+
+# --------------------------------------------------------------------------- OOD gate
+
+
+def ood_threshold(alpha: float = 0.85, dof: int = 3) -> float:
+    """``chi2.ppf(alpha, dof)``: the gate on the squared Mahalanobis distance (NOTES.md)."""
+    from scipy.stats import chi2
+
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"OOD alpha must be in (0, 1), got {alpha}")
+    return float(chi2.ppf(alpha, dof))
+
+
+def is_out_of_distribution(fused: FactorizedTwistMixture, threshold: float) -> torch.Tensor:
+    """``(B,)`` bool: the user translation is farther than ``threshold`` (squared Mahalanobis,
+    ``Sigma_k + S_u``) from *every* class, i.e. from the nearest one."""
+    if fused.trans_mahalanobis_sq is None:
+        raise ValueError("this mixture carries no user command (use fuse_user_command)")
+    return fused.trans_mahalanobis_sq.min(-1).values > threshold
+
+
+# --------------------------------------------------------------------------- user covariance
+
+
+class UserCovarianceEstimator:
+    """Adaptive user-interface covariances ``S_u`` (translation) and ``G_u`` (rotation), per batch element.
+
+    NOTES.md: start ``diag([0.03]*3 + [0.1]*3)``; keep the last 14 non-zero commands;
+    ``S <- 0.8 S + 0.2 sample-cov`` only while ``det^(1/3) > 0.01``. Our reading: the
+    translation and rotation blocks are updated separately (the posterior only uses the
+    two 3x3 blocks, and ``det^(1/3)`` is the geometric-mean variance of a 3x3 block); the
+    sample covariance is over the stored commands (at least ``min_samples``); an update is
+    applied only if the *updated* block keeps ``det^(1/3) > floor``, otherwise the block is
+    left as it is. So the covariance follows the user's command spread but never
+    collapses below a geometric-mean variance of ``floor`` (which would hand the user
+    full authority), and it can grow again when the user becomes noisier.
+    """
+
+    def __init__(
+        self,
+        batch_size: int = 1,
+        init_trans_var: float = 0.03,
+        init_rot_var: float = 0.1,
+        window: int = 14,
+        decay: float = 0.8,
+        floor: float = 0.01,
+        min_samples: int = 2,
+        adapt: bool = True,
+    ) -> None:
+        if batch_size < 1 or window < 2 or not 0.0 <= decay <= 1.0 or min_samples < 2 or min_samples > window:
+            raise ValueError(
+                f"bad UserCovarianceEstimator settings: batch_size={batch_size}, window={window}, "
+                f"decay={decay}, min_samples={min_samples}"
+            )
+        if init_trans_var <= 0 or init_rot_var <= 0 or floor <= 0:
+            raise ValueError("initial variances and floor must be positive")
+        self.batch_size = batch_size
+        self.init_trans_var = init_trans_var
+        self.init_rot_var = init_rot_var
+        self.window = window
+        self.decay = decay
+        self.floor = floor
+        self.min_samples = min_samples
+        self.adapt = adapt
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the initial diagonal covariances and an empty command buffer."""
+        b = self.batch_size
+        eye = torch.eye(3, dtype=torch.float64)
+        self.trans_cov = (self.init_trans_var * eye).expand(b, 3, 3).clone()
+        """``(B, 3, 3)`` S_u."""
+        self.rot_cov = (self.init_rot_var * eye).expand(b, 3, 3).clone()
+        """``(B, 3, 3)`` G_u."""
+        self._buffer = torch.zeros(b, self.window, 6, dtype=torch.float64)
+        self._count = torch.zeros(b, dtype=torch.long)
+
+    @property
+    def num_samples(self) -> torch.Tensor:
+        """``(B,)`` commands currently stored."""
+        return self._count.clamp(max=self.window)
+
+    def update(self, user_twist: torch.Tensor, active: torch.Tensor) -> None:
+        """Store the command ``(B, 6)`` of every element with ``active (B,)`` True and adapt."""
+        if user_twist.shape != (self.batch_size, 6) or active.shape != (self.batch_size,):
+            raise ValueError(
+                f"expected user_twist ({self.batch_size}, 6) and active ({self.batch_size},), "
+                f"got {tuple(user_twist.shape)} and {tuple(active.shape)}"
+            )
+        for i in torch.nonzero(active).flatten().tolist():
+            self._buffer[i, self._count[i] % self.window] = user_twist[i].double()
+            self._count[i] += 1
+            n = int(min(self._count[i], self.window))
+            if not self.adapt or n < self.min_samples:
+                continue
+            samples = self._buffer[i, :n]
+            centred = samples - samples.mean(0, keepdim=True)
+            sample_cov = centred.T @ centred / (n - 1)
+            for attr, block in (("trans_cov", slice(0, 3)), ("rot_cov", slice(3, 6))):
+                current = getattr(self, attr)
+                candidate = self.decay * current[i] + (1.0 - self.decay) * sample_cov[block, block]
+                candidate = 0.5 * (candidate + candidate.T)
+                det = torch.linalg.det(candidate)
+                if det > 0 and float(det) ** (1.0 / 3.0) > self.floor:
+                    current[i] = candidate

@@ -1,0 +1,302 @@
+"""RT-V3 shared controller: prior + user command -> executed body twist (paper, Sec. Posterior Decision Making).
+
+Per step and batch element, one of three modes (``SharedControlDiagnostics.modes``):
+
+* ``"shared"``: a user command arrived and is in distribution -> fuse it with the
+  prior's step-0 mixture (:func:`posterior.fuse_user_command`) and execute the mode of
+  the fused mixture (:func:`posterior.mixture_mode`).
+* ``"autonomous"``: no user command (``None`` or all zeros), asynchronous mode on, and
+  the EE is farther than ``autonomy_cutoff_distance`` from every scene point -> execute
+  the prior's most likely action (``policy.select_action``).
+* ``"user_only"``: the user's own command is executed (zeros if none). Happens (a) with
+  no command within ``autonomy_cutoff_distance`` of the object surface (the user has
+  control for the final approach), (b) in the out-of-distribution window: the user
+  translation is farther than ``chi2.ppf(ood_alpha, 3)`` (squared Mahalanobis,
+  ``Sigma_k + S_u``) from every class -> this step and the next ``ood_steps`` steps, class
+  weights kept at the prior's (no re-weighting with an OOD command); a new OOD command
+  inside the window restarts it, (c) the documented fallback for an empty grasp set:
+  with no candidate grasps the prior has nothing to condition on, so the policy is not
+  called and the user drives alone.
+
+Every output is clamped to ``max_linear_speed`` / ``max_angular_speed`` (norms).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import torch
+
+from rtv3_maniskill import features
+from rtv3_maniskill.shared_control import posterior
+from rtv3_maniskill.shared_control.twist_utils import as_twist, check_speed_limits, clamp_twist_speed
+from rtv3_maniskill.twist_mixture import TwistMixture
+
+MODES = ("shared", "autonomous", "user_only")
+
+
+class StepZeroPrior(Protocol):
+    """What the controller needs from the learned prior (duck-typed)."""
+
+    def predict_step0_mixture(self, observation: dict[str, torch.Tensor]) -> TwistMixture: ...
+
+    def select_action(self, observation: dict[str, torch.Tensor]) -> torch.Tensor: ...
+
+    def reset(self) -> None: ...
+
+
+@dataclass
+class SharedControlConfig:
+    """Settings of :class:`SharedController`. Units: m, m/s, rad/s."""
+
+    max_linear_speed: float | None = 0.5
+    """Norm limit on the executed translation velocity (m/s); None = no limit."""
+    max_angular_speed: float | None = 1.5
+    """Norm limit on the executed rotation velocity (rad/s); None = no limit."""
+    asynchronous: bool = True
+    """Execute the prior's most likely action while the user gives no command (paper)."""
+    autonomy_cutoff_distance: float = 0.07
+    """Asynchronous autonomy is off within this distance (m) of the nearest scene point.
+    The paper gives no number; 7 cm sits just outside the 5 cm pre-grasp offset."""
+    input_threshold: float = 1e-6
+    """A user twist with norm <= this counts as "no command"."""
+    ood_alpha: float = 0.85
+    """OOD gate: chi2 quantile on the squared Mahalanobis distance (3 DoF)."""
+    ood_steps: int = 3
+    """Steps after an OOD command during which the user's command is executed."""
+    user_trans_var: float = 0.03
+    """Initial S_u diagonal ((m/s)^2)."""
+    user_rot_var: float = 0.1
+    """Initial G_u diagonal ((rad/s)^2)."""
+    adapt_user_covariance: bool = True
+    user_cov_window: int = 14
+    user_cov_decay: float = 0.8
+    user_cov_floor: float = 0.01
+    reweight_rotation_at: str = "prior"
+    """See :func:`posterior.fuse_user_command` ("prior" = paper, "fused" = NOTES.md)."""
+    mode_search_starts: int = 3
+    mode_search_iters: int = 10
+
+    def __post_init__(self) -> None:
+        check_speed_limits(self.max_linear_speed, self.max_angular_speed)
+        if not (math.isfinite(self.autonomy_cutoff_distance) and self.autonomy_cutoff_distance >= 0):
+            raise ValueError(f"autonomy_cutoff_distance must be >= 0, got {self.autonomy_cutoff_distance}")
+        if self.ood_steps < 0:
+            raise ValueError(f"ood_steps must be >= 0, got {self.ood_steps}")
+        if self.reweight_rotation_at not in ("prior", "fused"):
+            raise ValueError(f"reweight_rotation_at must be 'prior' or 'fused', got {self.reweight_rotation_at!r}")
+        if self.mode_search_starts < 1 or self.mode_search_iters < 0:
+            raise ValueError("mode_search_starts must be >= 1 and mode_search_iters >= 0")
+        posterior.ood_threshold(self.ood_alpha)  # validates alpha
+
+
+@dataclass
+class SharedControlDiagnostics:
+    """What happened in the last :meth:`SharedController.step` (B = batch size; B = 1 unbatched).
+
+    Attributes:
+        modes: per element one of ``"shared"``, ``"autonomous"``, ``"user_only"``.
+        class_weights: ``(B, K)`` posterior class weights in shared mode, the prior's otherwise
+            (empty ``(B, 0)`` when the policy was not called).
+        prior_class_weights: ``(B, K)`` the prior's class weights.
+        trans_entropy_lower, trans_entropy_upper, rot_entropy_lower, rot_entropy_upper:
+            ``(B,)`` entropy bounds (nats) of the mixture behind ``class_weights`` (NaN when the
+            policy was not called).
+        ood: ``(B,)`` bool, in the out-of-distribution window.
+        surface_distance: ``(B,)`` EE distance to the nearest valid scene point (m; inf if none).
+        user_trans_cov, user_rot_cov: ``(B, 3, 3)`` S_u and G_u used this step.
+        fallback: ``(B,)`` bool, the empty-grasp-set fallback was used.
+    """
+
+    modes: tuple[str, ...]
+    class_weights: torch.Tensor
+    prior_class_weights: torch.Tensor
+    trans_entropy_lower: torch.Tensor
+    trans_entropy_upper: torch.Tensor
+    rot_entropy_lower: torch.Tensor
+    rot_entropy_upper: torch.Tensor
+    ood: torch.Tensor
+    surface_distance: torch.Tensor
+    user_trans_cov: torch.Tensor
+    user_rot_cov: torch.Tensor
+    fallback: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
+
+    @property
+    def mode(self) -> str:
+        """The mode of a single (unbatched or B = 1) step."""
+        if len(self.modes) != 1:
+            raise ValueError(f"batched step with {len(self.modes)} elements: use .modes")
+        return self.modes[0]
+
+
+def surface_distance(observation: dict[str, Any]) -> torch.Tensor:
+    """``(B,)`` distance (m) from the EE position (``observation.state[..., EE_POS]``, world) to the
+    nearest valid point of ``observation.point_cloud`` (world xyz); inf without valid points."""
+    state = torch.as_tensor(observation[features.STATE])
+    ee = (state[None] if state.ndim == 1 else state)[:, features.EE_POS].double()
+    b = ee.shape[0]
+    if features.POINT_CLOUD not in observation:
+        return torch.full((b,), math.inf, dtype=torch.float64)
+    cloud = torch.as_tensor(observation[features.POINT_CLOUD])
+    cloud = (cloud[None] if cloud.ndim == 2 else cloud)[..., :3].double()
+    if cloud.shape[0] != b:
+        raise ValueError(f"{features.POINT_CLOUD} has batch {cloud.shape[0]}, state has {b}")
+    if features.POINT_CLOUD_MASK in observation:
+        mask = torch.as_tensor(observation[features.POINT_CLOUD_MASK])
+        mask = (mask[None] if mask.ndim == 1 else mask) > 0.5
+    else:
+        mask = torch.ones(cloud.shape[:2], dtype=torch.bool)
+    mask = mask & torch.isfinite(cloud).all(-1)
+    dist = (cloud - ee[:, None]).norm(dim=-1)
+    dist = torch.where(mask, dist, torch.full_like(dist, math.inf))
+    return dist.min(-1).values if dist.shape[1] > 0 else torch.full((b,), math.inf, dtype=torch.float64)
+
+
+class SharedController:
+    """RT-V3 shared control around a learned prior (see the module docstring for the modes).
+
+    Args:
+        policy: has ``predict_step0_mixture(obs) -> TwistMixture``, ``select_action(obs) -> (B, 6)``
+            (the prior's most likely twist) and ``reset()``.
+        config: :class:`SharedControlConfig`.
+    """
+
+    def __init__(self, policy: StepZeroPrior, config: SharedControlConfig | None = None) -> None:
+        for name in ("predict_step0_mixture", "select_action", "reset"):
+            if not callable(getattr(policy, name, None)):
+                raise TypeError(f"policy must have a callable {name}(); {type(policy).__name__} has none")
+        self.policy = policy
+        self.config = config or SharedControlConfig()
+        self._ood_threshold = posterior.ood_threshold(self.config.ood_alpha)
+        self._batch_size: int | None = None
+        self._ood_remaining = torch.zeros(0, dtype=torch.long)
+        self._user_cov: posterior.UserCovarianceEstimator | None = None
+        self.last_diagnostics: SharedControlDiagnostics | None = None
+
+    def reset(self) -> None:
+        """Start a new episode: reset the policy, the OOD window and the user covariance."""
+        self.policy.reset()
+        self._batch_size = None
+        self._ood_remaining = torch.zeros(0, dtype=torch.long)
+        self._user_cov = None
+        self.last_diagnostics = None
+
+    def _init_batch(self, b: int) -> None:
+        if self._batch_size is None:
+            c = self.config
+            self._batch_size = b
+            self._ood_remaining = torch.zeros(b, dtype=torch.long)
+            self._user_cov = posterior.UserCovarianceEstimator(
+                batch_size=b,
+                init_trans_var=c.user_trans_var,
+                init_rot_var=c.user_rot_var,
+                window=c.user_cov_window,
+                decay=c.user_cov_decay,
+                floor=c.user_cov_floor,
+                adapt=c.adapt_user_covariance,
+            )
+        elif b != self._batch_size:
+            raise ValueError(f"batch size changed from {self._batch_size} to {b} without reset()")
+
+    def step(self, observation: dict[str, torch.Tensor], user_twist: torch.Tensor | None) -> torch.Tensor:
+        """One control step.
+
+        Args:
+            observation: feature dict (``rtv3_maniskill.features``); needs ``observation.state``
+                ``(27,)`` or ``(B, 27)``; ``observation.point_cloud`` (+ mask) for the autonomy
+                cutoff and ``observation.grasps_mask`` for the empty-grasp fallback are optional.
+            user_twist: ``(6,)`` or ``(B, 6)`` body twist ``[v, w]`` of the user, or None.
+        Returns:
+            ``(6,)`` (unbatched state) or ``(B, 6)`` robot body twist, EE frame.
+        """
+        c = self.config
+        if features.STATE not in observation:
+            raise ValueError(f"observation lacks {features.STATE!r} (needed for the EE position)")
+        state = torch.as_tensor(observation[features.STATE])
+        if state.ndim not in (1, 2) or state.shape[-1] != features.STATE_DIM:
+            raise ValueError(f"{features.STATE} must be ({features.STATE_DIM},) or (B, {features.STATE_DIM}), got {tuple(state.shape)}")
+        unbatched = state.ndim == 1
+        b = 1 if unbatched else state.shape[0]
+        if user_twist is None:
+            user = torch.zeros(b, 6, dtype=torch.float64)
+        else:
+            user = as_twist(user_twist, "user_twist", batch_size=b)
+            user = user.expand(b, 6).clone() if user.ndim == 1 else user
+        self._init_batch(b)
+        assert self._user_cov is not None
+        active = user.norm(dim=-1) > c.input_threshold
+
+        no_grasps = torch.zeros(b, dtype=torch.bool)
+        if features.GRASPS_MASK in observation:
+            gmask = torch.as_tensor(observation[features.GRASPS_MASK])
+            gmask = gmask[None] if gmask.ndim == 1 else gmask
+            no_grasps = (gmask > 0.5).sum(-1) == 0
+
+        dist = surface_distance(observation)
+        in_window = self._ood_remaining > 0
+        self._ood_remaining = (self._ood_remaining - 1).clamp_min(0)
+        s_u, g_u = self._user_cov.trans_cov.clone(), self._user_cov.rot_cov.clone()
+
+        action = user.clone()
+        modes = ["user_only"] * b
+        ood = in_window.clone()
+        nan = torch.full((b,), math.nan, dtype=torch.float64)
+        weights = prior_weights = torch.zeros(b, 0, dtype=torch.float64)
+        ent = [nan.clone(), nan.clone(), nan.clone(), nan.clone()]
+
+        if not bool(no_grasps.all()):
+            mixture = self.policy.predict_step0_mixture(observation)
+            if mixture.log_weights.shape[0] != b:
+                raise ValueError(f"policy returned a mixture of batch {mixture.log_weights.shape[0]}, expected {b}")
+            prior = posterior.prior_twist_mixture(mixture)
+            fused = posterior.fuse_user_command(mixture, user, s_u, g_u, c.reweight_rotation_at)
+            fired = active & posterior.is_out_of_distribution(fused, self._ood_threshold) & ~no_grasps
+            self._ood_remaining = torch.where(fired, torch.full_like(self._ood_remaining, c.ood_steps), self._ood_remaining)
+            ood = (in_window | fired) & ~no_grasps
+            shared = active & ~ood & ~no_grasps
+            autonomous = ~active & ~ood & ~no_grasps & (dist > c.autonomy_cutoff_distance)
+            if not c.asynchronous:
+                autonomous = torch.zeros_like(autonomous)
+            if shared.any():
+                mode = posterior.mixture_mode(fused, c.mode_search_starts, c.mode_search_iters)
+                action = torch.where(shared[:, None], mode, action)
+            if autonomous.any():
+                auto = torch.as_tensor(self.policy.select_action(observation)).double()
+                auto = auto[None] if auto.ndim == 1 else auto
+                if auto.shape != (b, 6):
+                    raise ValueError(f"policy.select_action returned shape {tuple(auto.shape)}, expected ({b}, 6)")
+                action = torch.where(autonomous[:, None], auto, action)
+            modes = ["shared" if s else "autonomous" if a else "user_only" for s, a in zip(shared.tolist(), autonomous.tolist())]
+            prior_weights = prior.weights
+            weights = torch.where(shared[:, None], fused.weights, prior_weights)
+            use = shared
+            t_lo_f, t_up_f = posterior.translation_entropy_bounds(fused)
+            r_lo_f, r_up_f = posterior.rotation_entropy_bounds(fused)
+            t_lo_p, t_up_p = posterior.translation_entropy_bounds(prior)
+            r_lo_p, r_up_p = posterior.rotation_entropy_bounds(prior)
+            ent = [
+                torch.where(use, f, p) for f, p in ((t_lo_f, t_lo_p), (t_up_f, t_up_p), (r_lo_f, r_lo_p), (r_up_f, r_up_p))
+            ]
+        self._user_cov.update(user, active)
+
+        action = clamp_twist_speed(action, c.max_linear_speed, c.max_angular_speed)
+        if not torch.isfinite(action).all():  # defensive: never send NaN to a robot
+            raise FloatingPointError("shared controller produced a non-finite twist")
+        self.last_diagnostics = SharedControlDiagnostics(
+            modes=tuple(modes),
+            class_weights=weights,
+            prior_class_weights=prior_weights,
+            trans_entropy_lower=ent[0],
+            trans_entropy_upper=ent[1],
+            rot_entropy_lower=ent[2],
+            rot_entropy_upper=ent[3],
+            ood=ood,
+            surface_distance=dist,
+            user_trans_cov=s_u,
+            user_rot_cov=g_u,
+            fallback=no_grasps,
+        )
+        out_dtype = torch.float32
+        return action[0].to(out_dtype) if unbatched else action.to(out_dtype)

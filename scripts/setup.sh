@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# Idempotent set-up for a fresh Debian 12 / Python 3.11 machine, with or without a GPU.
+#   1. a virtual environment in ./.venv with the project (and the LeRobot plugin shim);
+#   2. only when SAPIEN finds no usable Vulkan device: Mesa's software Vulkan driver
+#      (lavapipe >= 24.3, from Debian's bookworm-backports suite), which ManiSkill needs
+#      to render point clouds on a machine without a GPU.
+# Usage: bash scripts/setup.sh [--dev]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+extras=""
+[[ "${1:-}" == "--dev" ]] && extras="[dev]"
+
+log() { printf '\033[1m[setup]\033[0m %s\n' "$*" >&2; }
+
+PY=${PYTHON:-python3.11}
+command -v "$PY" >/dev/null || PY=python3
+if [[ ! -x .venv/bin/python ]]; then
+  log "creating virtual environment .venv ($($PY --version))"
+  "$PY" -m venv .venv
+fi
+stamp=.venv/.rtv3-installed
+want="$(cat pyproject.toml $(ls lerobot_policy_rtv3/pyproject.toml 2>/dev/null || true) | sha1sum | cut -c1-16)${extras}"
+if [[ ! -f $stamp || "$(cat $stamp)" != "$want" ]]; then
+  log "installing rtv3-maniskill${extras} and its pinned dependencies into .venv (first time: several minutes, ~5 GB of wheels)"
+  .venv/bin/pip install --quiet --upgrade "pip>=24"
+  .venv/bin/pip install --quiet -e ".${extras}"
+  if [[ -d lerobot_policy_rtv3 ]]; then
+    .venv/bin/pip install --quiet --no-deps -e ./lerobot_policy_rtv3
+  fi
+  echo "$want" > $stamp
+fi
+
+vulkan_ok() {
+  .venv/bin/python - <<'PY' >/dev/null 2>&1
+import sapien
+sapien.render.RenderSystem()   # raises "failed to find a rendering device" without Vulkan
+PY
+}
+
+if ! vulkan_ok; then
+  log "no usable Vulkan device: installing Mesa's software Vulkan driver (lavapipe) from bookworm-backports;"
+  log "ManiSkill renders point clouds through Vulkan, and Debian 12's own Mesa 22.3 is too old for SAPIEN."
+  SUDO=""; [[ $(id -u) -ne 0 ]] && SUDO="sudo"
+  src=/etc/apt/sources.list.d/rtv3-bookworm-backports.sources
+  if [[ ! -f $src ]]; then
+    # Reuse the machine's own Debian mirror: copy its first Debian URI, change the suite.
+    uri=$(grep -h '^URIs:' /etc/apt/sources.list.d/*.sources 2>/dev/null | grep -v security | head -1 | awk '{print $2}')
+    if [[ -z "$uri" ]]; then
+      uri=$(grep -hE '^deb ' /etc/apt/sources.list 2>/dev/null | grep -v security | head -1 | awk '{print $2}')
+    fi
+    [[ -n "$uri" ]] || { log "ERROR: found no Debian apt source to derive bookworm-backports from"; exit 1; }
+    printf 'Types: deb\nURIs: %s\nSuites: bookworm-backports\nComponents: main\nSigned-By: /usr/share/keyrings/debian-archive-keyring.gpg\n' "$uri" | $SUDO tee $src >/dev/null
+  fi
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq -t bookworm-backports mesa-vulkan-drivers libvulkan1 >/dev/null
+  if ! vulkan_ok; then
+    log "ERROR: SAPIEN still finds no Vulkan device after installing lavapipe"; exit 1
+  fi
+  log "software Vulkan (lavapipe) is working"
+fi
