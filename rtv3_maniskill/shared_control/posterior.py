@@ -186,6 +186,7 @@ def fuse_user_command(
     user_trans_cov: torch.Tensor,
     user_rot_cov: torch.Tensor,
     reweight_rotation_at: str = "prior",
+    prior: FactorizedTwistMixture | None = None,
 ) -> FactorizedTwistMixture:
     """Posterior step-0 mixture given the user command (paper, Sec. Posterior Decision Making).
 
@@ -196,6 +197,8 @@ def fuse_user_command(
         user_rot_cov: ``(B, 3, 3)`` ``G_u`` (the paper's Gamma^sys).
         reweight_rotation_at: ``"prior"`` (paper: rotation term of the class likelihood at
             ``omega_k(mu_k)``) or ``"fused"`` (NOTES.md: at ``omega_k(mu_k')``).
+        prior: optional :func:`prior_twist_mixture` of the same ``mixture``; its rotation
+            Gaussians are reused instead of calling ``rotation_given_translation(mu_k)`` again.
     Returns:
         The fused mixture; ``log_weights`` are ``log pi_k'``.
     """
@@ -230,7 +233,9 @@ def fuse_user_command(
     # Class re-weighting (Eq. p(z | h_0, a_0^u)), in log space.
     trans_pred_cov = regularize_covariance(sigma + s_u)
     log_lik_v = gaussian_log_prob(v_u, mu, trans_pred_cov)
-    if reweight_rotation_at == "prior":
+    if reweight_rotation_at == "prior" and prior is not None:
+        omega_r, gamma_r = prior.rot_mean, prior.rot_cov
+    elif reweight_rotation_at == "prior":
         omega_r, gamma_r = _rotation_at(mixture, mu)
     else:
         omega_r, gamma_r = omega_f, gamma_f

@@ -207,7 +207,8 @@ class SharedController:
             observation: feature dict (``rtv3_maniskill.features``); needs ``observation.state``
                 ``(27,)`` or ``(B, 27)``; ``observation.point_cloud`` (+ mask) for the autonomy
                 cutoff and ``observation.grasps_mask`` for the empty-grasp fallback are optional.
-            user_twist: ``(6,)`` or ``(B, 6)`` body twist ``[v, w]`` of the user, or None.
+            user_twist: ``(6,)`` or ``(B, 6)`` body twist ``[v, w]`` of the user, or None (no
+                command). A ``(6,)`` twist with a batched observation applies to every element.
         Returns:
             ``(6,)`` (unbatched state) or ``(B, 6)`` robot body twist, EE frame.
         """
@@ -251,8 +252,11 @@ class SharedController:
             if mixture.log_weights.shape[0] != b:
                 raise ValueError(f"policy returned a mixture of batch {mixture.log_weights.shape[0]}, expected {b}")
             prior = posterior.prior_twist_mixture(mixture)
-            fused = posterior.fuse_user_command(mixture, user, s_u, g_u, c.reweight_rotation_at)
-            fired = active & posterior.is_out_of_distribution(fused, self._ood_threshold) & ~no_grasps
+            fused = None
+            fired = torch.zeros(b, dtype=torch.bool)
+            if (active & ~no_grasps).any():
+                fused = posterior.fuse_user_command(mixture, user, s_u, g_u, c.reweight_rotation_at, prior=prior)
+                fired = active & posterior.is_out_of_distribution(fused, self._ood_threshold) & ~no_grasps
             self._ood_remaining = torch.where(fired, torch.full_like(self._ood_remaining, c.ood_steps), self._ood_remaining)
             ood = (in_window | fired) & ~no_grasps
             shared = active & ~ood & ~no_grasps
@@ -260,6 +264,7 @@ class SharedController:
             if not c.asynchronous:
                 autonomous = torch.zeros_like(autonomous)
             if shared.any():
+                assert fused is not None
                 mode = posterior.mixture_mode(fused, c.mode_search_starts, c.mode_search_iters)
                 action = torch.where(shared[:, None], mode, action)
             if autonomous.any():
@@ -269,16 +274,22 @@ class SharedController:
                     raise ValueError(f"policy.select_action returned shape {tuple(auto.shape)}, expected ({b}, 6)")
                 action = torch.where(autonomous[:, None], auto, action)
             modes = ["shared" if s else "autonomous" if a else "user_only" for s, a in zip(shared.tolist(), autonomous.tolist())]
+            # Diagnostics: the fused mixture where it was executed, the prior's elsewhere.
+            shown = prior
+            if fused is not None and shared.any():
+                shown = posterior.FactorizedTwistMixture(
+                    *(torch.where(shared.view(b, *[1] * (f.ndim - 1)), f, p) for f, p in (
+                        (fused.log_weights, prior.log_weights),
+                        (fused.trans_mean, prior.trans_mean),
+                        (fused.trans_cov, prior.trans_cov),
+                        (fused.rot_mean, prior.rot_mean),
+                        (fused.rot_cov, prior.rot_cov),
+                    )),
+                    prior_log_weights=prior.log_weights,
+                )
             prior_weights = prior.weights
-            weights = torch.where(shared[:, None], fused.weights, prior_weights)
-            use = shared
-            t_lo_f, t_up_f = posterior.translation_entropy_bounds(fused)
-            r_lo_f, r_up_f = posterior.rotation_entropy_bounds(fused)
-            t_lo_p, t_up_p = posterior.translation_entropy_bounds(prior)
-            r_lo_p, r_up_p = posterior.rotation_entropy_bounds(prior)
-            ent = [
-                torch.where(use, f, p) for f, p in ((t_lo_f, t_lo_p), (t_up_f, t_up_p), (r_lo_f, r_lo_p), (r_up_f, r_up_p))
-            ]
+            weights = shown.weights
+            ent = [*posterior.translation_entropy_bounds(shown), *posterior.rotation_entropy_bounds(shown)]
         self._user_cov.update(user, active)
 
         action = clamp_twist_speed(action, c.max_linear_speed, c.max_angular_speed)

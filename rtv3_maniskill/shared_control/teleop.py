@@ -206,6 +206,10 @@ class LeRobotKeyboardTwist:
         """Current ``(6,)`` twist from the held keys."""
         if self.teleop is None:
             raise RuntimeError("call connect() first")
+        if not self.teleop.is_connected:
+            raise RuntimeError(
+                "LeRobot keyboard teleoperator is not connected: pynput needs a display (DISPLAY unset?)"
+            )
         return self.mapping.twist(pressed_keys_from_keyboard_action(self.teleop.get_action()))
 
     def disconnect(self) -> None:

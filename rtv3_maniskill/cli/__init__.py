@@ -1,0 +1,38 @@
+"""The ``rtv3`` command: one home for every subcommand (``rtv3 --help`` lists them)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module under rtv3_maniskill.cli, one-line help). Modules load lazily so that
+# `rtv3 --help` stays fast.
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "scene": ("scene", "render a random clutter scene; save an image with its point cloud and grasp candidates"),
+    "benchmark-env": ("benchmark_env", "time GraspClutter-v1: steps/s, reset incl. grasp sampling, point-cloud capture"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rtv3", description="RT-V3 shared control on ManiSkill3 and LeRobot.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_text) in SUBCOMMANDS.items():
+        sp = sub.add_parser(name, help=help_text, description=help_text)
+        sp.set_defaults(_module=module)
+        importlib.import_module(f"rtv3_maniskill.cli.{module}").add_arguments(sp)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 0
+    module = importlib.import_module(f"rtv3_maniskill.cli.{args._module}")
+    return int(module.run(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Demonstration data: the expert motion planner and (elsewhere) dataset writers."""

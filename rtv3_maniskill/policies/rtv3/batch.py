@@ -1,0 +1,163 @@
+"""Reading and validating RT-V3 batches (keys and shapes from ``rtv3_maniskill/features.py``).
+
+Accepted layouts per key (B = batch, T = history, N points, M grasps):
+
+* ``observation.state``: ``(B, T, 27)`` history, ``(B, 27)`` or ``(27,)`` single step;
+* context, either the four keys ``observation.point_cloud`` ``(B[, T], N, 6)``,
+  ``observation.point_cloud_mask`` ``(B[, T], N)``, ``observation.grasps`` ``(B[, T], M, 9)``,
+  ``observation.grasps_mask`` ``(B[, T], M)`` (batch dim optional when B = 1), or the packed
+  ``observation.environment_state`` ``(B[, T], D)`` (``features.pack_context``). With a time
+  axis only the last frame is used: the scene is static (paper Sec. IV).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import torch
+
+from rtv3_maniskill import features as ft
+from rtv3_maniskill.policies.rtv3.configuration_rtv3 import ENV_STATE
+
+
+@dataclass
+class SceneContext:
+    """Static scene context of one frame, world frame.
+
+    Attributes:
+        point_cloud: ``(B, N, 6)`` xyz (m) + rgb. point_mask: ``(B, N)`` bool, True = real point.
+        grasps: ``(B, M, 9)`` position, quaternion wxyz, width, score. grasp_mask: ``(B, M)`` bool.
+    """
+
+    point_cloud: torch.Tensor
+    point_mask: torch.Tensor
+    grasps: torch.Tensor
+    grasp_mask: torch.Tensor
+
+    @property
+    def batch_size(self) -> int:
+        return self.point_cloud.shape[0]
+
+
+@dataclass
+class RTV3Inputs:
+    """Everything the model reads: ``states (B, T, 27)`` history (last = current) + scene context."""
+
+    states: torch.Tensor
+    context: SceneContext
+
+
+def check_finite(key: str, value: torch.Tensor) -> None:
+    """Raise ``ValueError`` naming ``key`` if ``value`` holds NaN or inf."""
+    if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+        raise ValueError(f"'{key}' contains NaN or inf values")
+
+
+def _as_tensor(key: str, value) -> torch.Tensor:
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"'{key}' must be a torch.Tensor, got {type(value).__name__}")
+    return value
+
+
+def _single_frame(key: str, value: torch.Tensor, frame_ndim: int, tail: tuple[int | None, ...]) -> torch.Tensor:
+    """Bring ``value`` to ``(B, *frame_shape)``: add a batch dim or take the last time step."""
+    if value.ndim == frame_ndim:
+        value = value[None]
+    elif value.ndim == frame_ndim + 2:
+        value = value[:, -1]
+    elif value.ndim != frame_ndim + 1:
+        raise ValueError(
+            f"'{key}' has shape {tuple(value.shape)}; expected (B, {', '.join(str(t or '?') for t in tail)}) "
+            f"or with a time axis (B, T, ...)"
+        )
+    for dim, want in zip(value.shape[1:], tail):
+        if want is not None and dim != want:
+            raise ValueError(f"'{key}' has shape {tuple(value.shape)}; trailing dims must be {tail}")
+    return value
+
+
+def read_context(batch: dict[str, torch.Tensor], num_points: int, max_grasps: int) -> SceneContext:
+    """Scene context of the current frame from either the four context keys or the packed vector."""
+    if ft.POINT_CLOUD in batch:
+        missing = [k for k in (ft.POINT_CLOUD_MASK, ft.GRASPS, ft.GRASPS_MASK) if k not in batch]
+        if missing:
+            raise KeyError(f"batch has '{ft.POINT_CLOUD}' but lacks {missing}")
+        pc = _single_frame(ft.POINT_CLOUD, _as_tensor(ft.POINT_CLOUD, batch[ft.POINT_CLOUD]), 2, (None, 6))
+        pc_mask = _single_frame(ft.POINT_CLOUD_MASK, _as_tensor(ft.POINT_CLOUD_MASK, batch[ft.POINT_CLOUD_MASK]), 1, (pc.shape[1],))
+        grasps = _single_frame(ft.GRASPS, _as_tensor(ft.GRASPS, batch[ft.GRASPS]), 2, (None, ft.GRASP_DIM))
+        g_mask = _single_frame(ft.GRASPS_MASK, _as_tensor(ft.GRASPS_MASK, batch[ft.GRASPS_MASK]), 1, (grasps.shape[1],))
+        for key, value in ((ft.POINT_CLOUD, pc), (ft.POINT_CLOUD_MASK, pc_mask), (ft.GRASPS, grasps), (ft.GRASPS_MASK, g_mask)):
+            check_finite(key, value)
+        sizes = {pc.shape[0], pc_mask.shape[0], grasps.shape[0], g_mask.shape[0]}
+        if len(sizes) != 1:
+            raise ValueError(f"context keys disagree on the batch size: {sorted(sizes)}")
+    elif ENV_STATE in batch:
+        dim = ft.environment_state_dim(num_points, max_grasps)
+        packed = _single_frame(ENV_STATE, _as_tensor(ENV_STATE, batch[ENV_STATE]), 1, (dim,))
+        check_finite(ENV_STATE, packed)
+        unpacked = ft.unpack_context(packed, num_points, max_grasps)
+        pc, pc_mask = unpacked[ft.POINT_CLOUD], unpacked[ft.POINT_CLOUD_MASK]
+        grasps, g_mask = unpacked[ft.GRASPS], unpacked[ft.GRASPS_MASK]
+    else:
+        raise KeyError(
+            f"batch has no scene context: give '{ft.POINT_CLOUD}', '{ft.POINT_CLOUD_MASK}', '{ft.GRASPS}', "
+            f"'{ft.GRASPS_MASK}' or the packed '{ENV_STATE}'"
+        )
+    return SceneContext(pc, pc_mask > 0.5, grasps, g_mask > 0.5)
+
+
+def read_states(batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    """``observation.state`` as given, checked: ``(B, T, 27)``, ``(B, 27)`` or ``(27,)`` -> same tensor."""
+    if ft.STATE not in batch:
+        raise KeyError(f"batch lacks '{ft.STATE}'")
+    states = _as_tensor(ft.STATE, batch[ft.STATE])
+    if states.ndim not in (1, 2, 3) or states.shape[-1] != ft.STATE_DIM:
+        raise ValueError(
+            f"'{ft.STATE}' has shape {tuple(states.shape)}; expected (B, T, {ft.STATE_DIM}), "
+            f"(B, {ft.STATE_DIM}) or ({ft.STATE_DIM},)"
+        )
+    check_finite(ft.STATE, states)
+    quat_norm = states[..., ft.EE_QUAT].norm(dim=-1)
+    if bool((quat_norm < 1e-6).any()):
+        raise ValueError(f"'{ft.STATE}' holds a zero end-effector quaternion (entries 3:7)")
+    return states
+
+
+def read_actions(batch: dict[str, torch.Tensor], batch_size: int, horizon: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``action (B, H, 6)`` and its validity ``(B, H)`` bool from ``action_is_pad`` (all valid if absent)."""
+    if ft.ACTION not in batch:
+        raise KeyError(f"training batch lacks '{ft.ACTION}'")
+    actions = _as_tensor(ft.ACTION, batch[ft.ACTION])
+    if tuple(actions.shape) != (batch_size, horizon, 6):
+        raise ValueError(f"'{ft.ACTION}' has shape {tuple(actions.shape)}; expected ({batch_size}, {horizon}, 6)")
+    check_finite(ft.ACTION, actions)
+    pad = batch.get(f"{ft.ACTION}_is_pad")
+    if pad is None:
+        return actions, torch.ones(batch_size, horizon, dtype=torch.bool, device=actions.device)
+    if tuple(pad.shape) != (batch_size, horizon):
+        raise ValueError(f"'{ft.ACTION}_is_pad' has shape {tuple(pad.shape)}; expected ({batch_size}, {horizon})")
+    return actions, ~pad.bool()
+
+
+def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int = 10) -> SceneContext:
+    """Training augmentation (NOTES): keep a random subset of 10..all valid grasps, always the target.
+
+    Args:
+        target: ``(B,)`` or ``(B, 1)`` index of the target grasp; rows whose target is out of range or
+            not a valid grasp are left unchanged.
+    """
+    mask = context.grasp_mask
+    batch, count = mask.shape
+    target = target.reshape(batch).long().to(mask.device)
+    in_range = (target >= 0) & (target < count)
+    safe_target = target.clamp(0, max(count - 1, 0))
+    usable = in_range & mask.gather(1, safe_target[:, None])[:, 0]
+    n_valid = mask.sum(1)
+    low = torch.minimum(n_valid, torch.full_like(n_valid, min_keep))
+    keep_n = low + (torch.rand(batch, device=mask.device) * (n_valid - low + 1).float()).long().clamp(max=n_valid - low)
+    priority = torch.rand(batch, count, device=mask.device)
+    priority = priority.masked_fill(~mask, 2.0)
+    priority.scatter_(1, safe_target[:, None], -1.0)
+    rank = priority.argsort(1).argsort(1)
+    subset = (rank < keep_n[:, None]) & mask
+    return replace(context, grasp_mask=torch.where(usable[:, None], subset, mask))

@@ -1,0 +1,85 @@
+"""Egocentric representation (paper Sec. IV and appendix): every input in the current EE frame.
+
+With ``T_0`` the current end-effector pose (world frame), a world-frame quantity ``X`` enters
+the network as ``T_0^-1 X``. Applying one rigid transform ``G`` to every world-frame input
+(``T -> G T``, ``P -> G P``, ``G_i -> G G_i``) leaves all of these unchanged, which is the
+paper's SE(3)-equivariance argument. Body twists are frame-invariant already.
+
+All outputs here are in SI units (m, rad, m/s, rad/s); network scaling happens in the model.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from rtv3_maniskill import features as ft
+from rtv3_maniskill import se3
+
+
+def state_poses(states: torch.Tensor) -> torch.Tensor:
+    """``(..., 27)`` observation.state -> EE poses ``(..., 4, 4)`` in the world frame."""
+    return se3.pose_to_matrix(states[..., ft.EE_POS], states[..., ft.EE_QUAT])
+
+
+def perturb_poses(poses: torch.Tensor, translation: float, rotation: float) -> torch.Tensor:
+    """Right-multiply ``(..., 4, 4)`` poses by ``Exp(u)``, ``u ~ U(-[t]*3, [t]*3) x U(-[r]*3, [r]*3)``.
+
+    Training augmentation (NOTES: uniform se(3) noise on the inputs).
+    """
+    bound = poses.new_tensor([translation] * 3 + [rotation] * 3)
+    noise = (torch.rand(*poses.shape[:-2], 6, dtype=poses.dtype, device=poses.device) * 2 - 1) * bound
+    return poses @ se3.se3_exp(noise)
+
+
+def history_dynamics(poses: torch.Tensor, body_twists: torch.Tensor) -> torch.Tensor:
+    """Past dynamics ``x_t = [log(T_0^-1 T_t), Ad(T_0^-1 T_t) xi_t]`` (paper, Dynamics Encoding).
+
+    Args:
+        poses: ``(B, T, 4, 4)`` world-frame EE poses, the last one is the current pose ``T_0``.
+        body_twists: ``(B, T, 6)`` EE body twists ``xi_t`` (each in its own frame ``T_t``).
+    Returns:
+        ``(B, T, 12)``: pose relative to the current EE frame (6, log map) and the twist expressed
+        in the current EE frame (6).
+    """
+    relative = se3.relative_transform(poses[:, -1:], poses)
+    return torch.cat([se3.se3_log(relative), (se3.adjoint(relative) @ body_twists[..., None])[..., 0]], -1)
+
+
+def future_dynamics(actions: torch.Tensor, dt: float) -> torch.Tensor:
+    """Future dynamics ``x_{1:H}`` from the action window alone (training only, for h+).
+
+    ``T_0^-1 T_t = prod_{k<t} Exp(a_k dt)`` (actions are realised body twists, ``features.ACTION``);
+    the twist of step ``t`` is ``a_{t-1}``, expressed in the current frame with the adjoint.
+
+    Args:
+        actions: ``(B, H, 6)`` body twists ``a_0 .. a_{H-1}`` (m/s, rad/s).
+    Returns:
+        ``(B, H, 12)`` ``[log(T_0^-1 T_t), Ad(T_0^-1 T_t) a_{t-1}]`` for ``t = 1 .. H``.
+    """
+    eye = torch.eye(4, dtype=actions.dtype, device=actions.device).expand(actions.shape[0], 4, 4)
+    relative = se3.integrate_body_twists(eye, actions, dt)
+    return torch.cat([se3.se3_log(relative), (se3.adjoint(relative) @ actions[..., None])[..., 0]], -1)
+
+
+def points_in_frame(frame: torch.Tensor, xyz: torch.Tensor) -> torch.Tensor:
+    """World points ``(B, N, 3)`` -> coordinates in ``frame (B, 4, 4)``: ``R^T (p - t)``."""
+    rot, trans = frame[:, None, :3, :3], frame[:, None, :3, 3]
+    return ((xyz - trans)[..., None, :] @ rot)[..., 0, :]
+
+
+def grasps_in_frame(frame: torch.Tensor, grasps: torch.Tensor) -> torch.Tensor:
+    """Grasp poses relative to ``frame``: ``(B, M, 9)`` grasps -> ``(B, M, 4, 4)`` ``T_0^-1 G``.
+
+    Parallel-jaw symmetry (NOTES): ``G`` and ``G Rz(pi)`` are the same grasp; the one whose
+    orientation is closer to the current EE orientation is kept (larger rotation trace, i.e.
+    ``R_00 + R_11 >= 0`` after the choice). Padded rows (zero quaternion) give the identity
+    rotation and are masked by the caller.
+    """
+    quat = grasps[..., 3:7]
+    safe_quat = torch.where(quat.norm(dim=-1, keepdim=True) > 1e-8, quat, torch.tensor([1.0, 0, 0, 0]).to(quat))
+    relative = se3.relative_transform(frame[:, None], se3.pose_to_matrix(grasps[..., 0:3], safe_quat))
+    flipped = se3.rotate_about_z(relative, math.pi)
+    flip = (relative[..., 0, 0] + relative[..., 1, 1]) < 0
+    return torch.where(flip[..., None, None], flipped, relative)

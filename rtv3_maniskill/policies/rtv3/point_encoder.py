@@ -1,0 +1,235 @@
+"""A small Point Transformer V3-style encoder in plain PyTorch (no spconv, no flash-attention).
+
+The PTv3 idea (Wu et al. 2024) kept here:
+1. *serialize*: points on a voxel grid are ordered along a space-filling curve (z-order /
+   Morton code; alternate stages use the axis-swapped "z-trans" order);
+2. *patch attention*: multi-head self-attention only within consecutive, fixed-size patches of
+   the serialized sequence;
+3. *grid pooling*: between stages, points falling into the same voxel of a grid twice as coarse
+   are merged (features max-pooled after a linear projection, coordinates averaged).
+The sparse-conv positional encoding of PTv3 is replaced by an MLP of the point coordinates.
+
+Points of a whole batch are processed as one flat list with a batch index, so no per-sample
+Python loop. Coordinates are in the current EE frame (metres), see ``egocentric.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+_BATCH_SHIFT = 48
+_AXIS_BITS = 16
+
+
+def _spread_bits(x: torch.Tensor) -> torch.Tensor:
+    """Insert two zero bits between the low 16 bits of ``x`` (int64) (Morton-code helper)."""
+    x = x & 0xFFFF
+    x = (x | (x << 16)) & 0x0000FF0000FF
+    x = (x | (x << 8)) & 0x00F00F00F00F
+    x = (x | (x << 4)) & 0x0C30C30C30C3
+    x = (x | (x << 2)) & 0x249249249249
+    return x
+
+
+def morton_code(grid: torch.Tensor, order: str = "z") -> torch.Tensor:
+    """Z-order code of integer voxel coordinates ``(L, 3)`` (each in ``[0, 2^16)``) -> ``(L,)`` int64.
+
+    ``order="z-trans"`` swaps the x and y axes (PTv3's transposed z-order).
+    """
+    if order == "z":
+        x, y, z = grid.unbind(-1)
+    elif order == "z-trans":
+        y, x, z = grid.unbind(-1)
+    else:
+        raise ValueError(f"unknown serialization order {order!r}; use 'z' or 'z-trans'")
+    return _spread_bits(x) | (_spread_bits(y) << 1) | (_spread_bits(z) << 2)
+
+
+@dataclass
+class FlatPoints:
+    """A batch of point sets as one list, sorted so that each sample's points are contiguous.
+
+    Attributes:
+        feat: ``(L, C)`` features.
+        xyz: ``(L, 3)`` coordinates (EE frame, m).
+        grid: ``(L, 3)`` int64 voxel coordinates at the current stage's grid size.
+        batch: ``(L,)`` int64 sample index, non-decreasing.
+        batch_size: B.
+    """
+
+    feat: torch.Tensor
+    xyz: torch.Tensor
+    grid: torch.Tensor
+    batch: torch.Tensor
+    batch_size: int
+
+    def permute(self, order: torch.Tensor) -> "FlatPoints":
+        return FlatPoints(self.feat[order], self.xyz[order], self.grid[order], self.batch[order], self.batch_size)
+
+    def serialize(self, order: str) -> "FlatPoints":
+        """Sort along the space-filling curve within each sample (stable, so ties keep input order)."""
+        key = (self.batch << _BATCH_SHIFT) | morton_code(self.grid, order)
+        return self.permute(torch.sort(key, stable=True).indices)
+
+
+def _patch_layout(batch: torch.Tensor, batch_size: int, patch_size: int) -> tuple[torch.Tensor, int]:
+    """Destination rows of each point when every sample is padded to a multiple of ``patch_size``.
+
+    Returns ``(dest (L,), total_rows)``; patches never mix samples.
+    """
+    counts = torch.bincount(batch, minlength=batch_size)
+    padded = (counts + patch_size - 1) // patch_size * patch_size
+    start_in = torch.cumsum(counts, 0) - counts
+    start_out = torch.cumsum(padded, 0) - padded
+    position = torch.arange(batch.shape[0], device=batch.device) - start_in[batch]
+    return start_out[batch] + position, int(padded.sum())
+
+
+class PatchAttention(nn.Module):
+    """Multi-head self-attention inside fixed-size patches of a serialized point list."""
+
+    def __init__(self, dim: int, heads: int, patch_size: int):
+        super().__init__()
+        self.heads, self.patch_size = heads, patch_size
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.proj = nn.Linear(dim, dim)
+
+    def forward(self, feat: torch.Tensor, batch: torch.Tensor, batch_size: int) -> torch.Tensor:
+        """``(L, C)`` serialized features -> ``(L, C)``."""
+        length, dim = feat.shape
+        if length == 0:
+            return feat
+        p, h = self.patch_size, self.heads
+        dest, total = _patch_layout(batch, batch_size, p)
+        qkv = feat.new_zeros(total, 3 * dim)
+        qkv[dest] = self.qkv(feat)
+        valid = torch.zeros(total, dtype=torch.bool, device=feat.device)
+        valid[dest] = True
+        qkv = qkv.view(total // p, p, 3, h, dim // h).permute(2, 0, 3, 1, 4)  # (3, patches, heads, P, d)
+        attn_mask = valid.view(total // p, 1, 1, p)  # every patch holds >= 1 real point
+        out = F.scaled_dot_product_attention(qkv[0], qkv[1], qkv[2], attn_mask=attn_mask)
+        out = out.transpose(1, 2).reshape(total, dim)[dest]
+        return self.proj(out)
+
+
+class PointBlock(nn.Module):
+    """Pre-norm transformer block: coordinate encoding + patch attention + MLP."""
+
+    def __init__(self, dim: int, heads: int, patch_size: int, position_scale: float, mlp_ratio: int = 4):
+        super().__init__()
+        self.position_scale = position_scale
+        self.position = nn.Sequential(nn.Linear(3, dim), nn.GELU(), nn.Linear(dim, dim))
+        self.norm1 = nn.LayerNorm(dim)
+        self.attn = PatchAttention(dim, heads, patch_size)
+        self.norm2 = nn.LayerNorm(dim)
+        self.mlp = nn.Sequential(nn.Linear(dim, mlp_ratio * dim), nn.GELU(), nn.Linear(mlp_ratio * dim, dim))
+
+    def forward(self, pts: FlatPoints) -> torch.Tensor:
+        x = pts.feat + self.position(pts.xyz * self.position_scale)
+        x = x + self.attn(self.norm1(x), pts.batch, pts.batch_size)
+        return x + self.mlp(self.norm2(x))
+
+
+class GridPooling(nn.Module):
+    """Merge points sharing a voxel of the 2x coarser grid: linear + norm + GELU, then max-pool."""
+
+    def __init__(self, in_dim: int, out_dim: int):
+        super().__init__()
+        self.proj = nn.Sequential(nn.Linear(in_dim, out_dim), nn.LayerNorm(out_dim), nn.GELU())
+
+    def forward(self, pts: FlatPoints) -> FlatPoints:
+        feat = self.proj(pts.feat)
+        if pts.feat.shape[0] == 0:
+            return FlatPoints(feat, pts.xyz, pts.grid, pts.batch, pts.batch_size)
+        coarse = torch.div(pts.grid, 2, rounding_mode="floor")
+        key = (pts.batch << _BATCH_SHIFT) | morton_code(coarse, "z")
+        key, order = torch.sort(key, stable=True)
+        unique_keys, inverse = torch.unique_consecutive(key, return_inverse=True)
+        n, dim = unique_keys.shape[0], feat.shape[1]
+        pooled = feat.new_zeros(n, dim).scatter_reduce(
+            0, inverse[:, None].expand(-1, dim), feat[order], "amax", include_self=False
+        )
+        counts = torch.bincount(inverse, minlength=n).to(pts.xyz.dtype)
+        xyz = pts.xyz.new_zeros(n, 3).index_add_(0, inverse, pts.xyz[order]) / counts[:, None]
+        grid = coarse.new_zeros(n, 3).scatter_(0, inverse[:, None].expand(-1, 3), coarse[order])
+        return FlatPoints(pooled, xyz, grid, unique_keys >> _BATCH_SHIFT, pts.batch_size)
+
+
+class PointTransformerEncoder(nn.Module):
+    """PTv3-style encoder: embedding, then per stage (serialize -> blocks), grid pooling between stages.
+
+    Args:
+        in_dim: per-point input features (e.g. 6 = scaled xyz + rgb).
+        channels / heads / depths: per stage (NOTES: 32/32/C, 2/4/4, 1/1/1).
+        patch_size: points per attention patch (120). grid_size: first-stage voxel size (m, 7.5 mm).
+        position_scale: multiplies coordinates fed to the positional MLPs.
+    """
+
+    def __init__(
+        self,
+        in_dim: int,
+        channels: tuple[int, ...],
+        heads: tuple[int, ...],
+        depths: tuple[int, ...],
+        patch_size: int,
+        grid_size: float,
+        position_scale: float,
+    ):
+        super().__init__()
+        self.grid_size = grid_size
+        self.orders = ["z" if i % 2 == 0 else "z-trans" for i in range(len(channels))]
+        self.embed = nn.Sequential(nn.Linear(in_dim, channels[0]), nn.LayerNorm(channels[0]), nn.GELU())
+        self.stages = nn.ModuleList(
+            nn.ModuleList(PointBlock(c, h, patch_size, position_scale) for _ in range(d))
+            for c, h, d in zip(channels, heads, depths)
+        )
+        self.pools = nn.ModuleList(GridPooling(a, b) for a, b in zip(channels[:-1], channels[1:]))
+        self.out_dim = channels[-1]
+
+    def flatten(self, xyz: torch.Tensor, feat: torch.Tensor, mask: torch.Tensor) -> FlatPoints:
+        """Padded ``(B, N, 3)``, ``(B, N, F)``, ``(B, N)`` bool -> flat list of the valid points on the grid.
+
+        The grid origin is each sample's minimum valid coordinate, so voxelisation depends only on
+        the (egocentric) coordinates.
+        """
+        big = torch.finfo(xyz.dtype).max
+        origin = torch.where(mask[..., None], xyz, xyz.new_tensor(big)).amin(1)  # (B, 3)
+        origin = torch.where(torch.isfinite(origin) & (origin < big), origin, torch.zeros_like(origin))
+        grid = torch.floor((xyz - origin[:, None]) / self.grid_size).long().clamp(0, (1 << _AXIS_BITS) - 1)
+        batch = torch.arange(xyz.shape[0], device=xyz.device)[:, None].expand(mask.shape)
+        return FlatPoints(feat[mask], xyz[mask], grid[mask], batch[mask], xyz.shape[0])
+
+    def forward(self, xyz: torch.Tensor, feat: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Encode padded point clouds.
+
+        Args:
+            xyz: ``(B, N, 3)`` EE-frame coordinates (m). feat: ``(B, N, F)``. mask: ``(B, N)`` bool, True = real.
+        Returns:
+            tokens ``(B, L, C)`` of the pooled points and their mask ``(B, L)`` bool (True = real).
+        """
+        pts = self.flatten(xyz, feat, mask)
+        pts = FlatPoints(self.embed(pts.feat), pts.xyz, pts.grid, pts.batch, pts.batch_size)
+        for i, blocks in enumerate(self.stages):
+            if i > 0:
+                pts = self.pools[i - 1](pts)
+            pts = pts.serialize(self.orders[i])
+            for block in blocks:
+                pts = FlatPoints(block(pts), pts.xyz, pts.grid, pts.batch, pts.batch_size)
+        return self._pad(pts)
+
+    @staticmethod
+    def _pad(pts: FlatPoints) -> tuple[torch.Tensor, torch.Tensor]:
+        counts = torch.bincount(pts.batch, minlength=pts.batch_size)
+        width = int(counts.max()) if pts.feat.shape[0] else 0
+        start = torch.cumsum(counts, 0) - counts
+        position = torch.arange(pts.batch.shape[0], device=pts.batch.device) - start[pts.batch]
+        dest = pts.batch * width + position
+        tokens = pts.feat.new_zeros(pts.batch_size * width, pts.feat.shape[1])
+        tokens[dest] = pts.feat
+        mask = torch.zeros(pts.batch_size * width, dtype=torch.bool, device=pts.feat.device)
+        mask[dest] = True
+        return tokens.view(pts.batch_size, width, -1), mask.view(pts.batch_size, width)

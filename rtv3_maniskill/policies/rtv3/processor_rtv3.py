@@ -1,0 +1,65 @@
+"""Pre/post-processing pipelines of the RT-V3 policy (LeRobot's ACT pattern).
+
+The model normalises by itself (egocentric frame + fixed scales), so the normaliser steps are
+identities under the config's ``normalization_mapping``; they stay in the pipeline so that
+saved processors look like every other LeRobot policy's. The rename and device steps are kept
+under their standard names: ``lerobot-eval`` overrides them by name.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from lerobot.processor import (
+    AddBatchDimensionProcessorStep,
+    DeviceProcessorStep,
+    NormalizerProcessorStep,
+    PolicyAction,
+    PolicyProcessorPipeline,
+    RenameObservationsProcessorStep,
+    UnnormalizerProcessorStep,
+)
+from lerobot.processor.converters import policy_action_to_transition, transition_to_policy_action
+from lerobot.utils.constants import POLICY_POSTPROCESSOR_DEFAULT_NAME, POLICY_PREPROCESSOR_DEFAULT_NAME
+
+from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
+
+
+def make_rtv3_pre_post_processors(
+    config: RTV3Config,
+    dataset_stats: dict[str, dict[str, torch.Tensor]] | None = None,
+) -> tuple[
+    PolicyProcessorPipeline[dict[str, Any], dict[str, Any]],
+    PolicyProcessorPipeline[PolicyAction, PolicyAction],
+]:
+    """Pre-processor: rename -> add batch dim -> device -> (identity) normalise.
+    Post-processor: (identity) unnormalise -> CPU."""
+    input_steps = [
+        RenameObservationsProcessorStep(rename_map={}),
+        AddBatchDimensionProcessorStep(),
+        DeviceProcessorStep(device=config.device),
+        NormalizerProcessorStep(
+            features={**config.input_features, **config.output_features},
+            norm_map=config.normalization_mapping,
+            stats=dataset_stats,
+            device=config.device,
+        ),
+    ]
+    output_steps = [
+        UnnormalizerProcessorStep(
+            features=config.output_features, norm_map=config.normalization_mapping, stats=dataset_stats
+        ),
+        DeviceProcessorStep(device="cpu"),
+    ]
+    return (
+        PolicyProcessorPipeline[dict[str, Any], dict[str, Any]](
+            steps=input_steps, name=POLICY_PREPROCESSOR_DEFAULT_NAME
+        ),
+        PolicyProcessorPipeline[PolicyAction, PolicyAction](
+            steps=output_steps,
+            name=POLICY_POSTPROCESSOR_DEFAULT_NAME,
+            to_transition=policy_action_to_transition,
+            to_output=transition_to_policy_action,
+        ),
+    )

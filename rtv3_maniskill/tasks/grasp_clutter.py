@@ -1,0 +1,379 @@
+"""``GraspClutter-v1``: reach a grasp candidate's pre-grasp in a cluttered table scene.
+
+The scene: ManiSkill's Panda (``panda_twist``: every Panda control mode plus
+``pd_ee_twist``) on the table, a VGN-style clutter of procedural or mesh-folder
+objects in the 30 cm workspace cube, and up to ``max_grasps`` collision-free antipodal
+grasp candidates per scene. Each episode picks a target grasp (privileged, in ``info``;
+settable with ``reset(options={"target_grasp_index": ...})``); success is reaching its
+pre-grasp (5 cm back along the approach axis) within the paper's pose distance.
+
+Observations (every mode has the same ``extra`` keys; ``B = num_envs``):
+
+* ``agent``: ``qpos (B, 9)``, ``qvel (B, 9)`` (arm + fingers);
+* ``extra.tcp_pose (B, 7)``: TCP position + wxyz quaternion, world frame;
+* ``extra.tcp_twist (B, 6)``: TCP body twist realised over the last control step;
+* ``extra.grasps (B, M, 9)`` / ``extra.grasps_mask (B, M)``: see ``rtv3_maniskill.features``;
+* ``extra.point_cloud (B, N, 6)`` / ``extra.point_cloud_mask (B, N)``: xyz (world) + rgb,
+  from the depth camera with ``obs_mode="pointcloud"``, else sampled from the object meshes.
+
+Layouts are computed per sub-scene from the episode seed, so the same seed gives the
+same scene and grasps; with ``num_envs > 1`` (GPU backend) every sub-scene has its own
+clutter and partial resets (``options={"env_idx": ...}``) keep it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import sapien
+import torch
+from mani_skill.envs.sapien_env import BaseEnv
+from mani_skill.envs.utils.observations.observations import sensor_data_to_pointcloud
+from mani_skill.sensors.camera import CameraConfig
+from mani_skill.utils import sapien_utils
+from mani_skill.utils.registration import register_env
+from mani_skill.utils.scene_builder.table import TableSceneBuilder
+from mani_skill.utils.structs.pose import Pose
+from mani_skill.utils.structs.types import SimConfig
+
+from rtv3_maniskill import se3
+from rtv3_maniskill.features import DEFAULT_MAX_GRASPS, DEFAULT_NUM_POINTS, FPS, GRASP_DIM
+from rtv3_maniskill.tasks.grasp_sampler import GraspSet, sample_grasps
+from rtv3_maniskill.tasks.object_library import convex_part_file, make_object_set
+from rtv3_maniskill.tasks.point_cloud import (
+    DEFAULT_VOXEL_SIZE,
+    process_point_cloud,
+    resample,
+    sample_scene_surface,
+    voxel_downsample,
+)
+from rtv3_maniskill.tasks.scene_generation import (
+    SCENE_TYPES,
+    add_collision_shapes,
+    generate_layout,
+    matrix_to_sapien_pose,
+)
+from rtv3_maniskill.tasks.scene_geometry import ROBOT_BASE_POSITION, WORKSPACE_CENTER, SceneGeometry
+from rtv3_maniskill.tasks.twist_controller import PandaTwist  # noqa: F401  (registers the agent)
+
+PREGRASP_DISTANCE = 0.05
+REST_QPOS = np.array([0.0, np.pi / 8, 0.0, -np.pi * 5 / 8, 0.0, np.pi * 3 / 4, np.pi / 4, 0.04, 0.04])
+
+
+@register_env("GraspClutter-v1", max_episode_steps=150)
+class GraspClutterEnv(BaseEnv):
+    """Reach the target grasp's pre-grasp pose in clutter (RT-V3 simulation setup).
+
+    Args (besides ManiSkill's ``obs_mode``, ``control_mode``, ``num_envs``, ...):
+        scene_type: ``"pile"``, ``"packed"`` or ``"mixed"`` (each scene draws one).
+        num_objects: objects per scene; ``None`` draws Poisson(4) + 1 (VGN).
+        object_source: ``"procedural"``, ``"procedural:box,mug"`` or a folder of meshes.
+        max_grasps: M, grasp candidates kept per scene (padded with a mask).
+        num_points: N, points per cloud (padded with a mask).
+        voxel_size: point-cloud voxel size in m (7.5 mm).
+        camera_resolution: depth camera width = height in pixels.
+        randomize_camera: draw the camera pose per scene (paper) instead of a fixed view.
+        success_threshold: pose distance (NOTES.md, shared-control weights) counted as success.
+        collision_force_threshold: N of contact force on any robot link counted as collision.
+    """
+
+    SUPPORTED_ROBOTS = ["panda_twist"]
+    SUPPORTED_OBS_MODES = ("state", "state_dict", "pointcloud", "none")
+
+    def __init__(
+        self,
+        *args,
+        robot_uids: str = "panda_twist",
+        scene_type: str = "pile",
+        num_objects: int | None = None,
+        object_source: str = "procedural",
+        max_grasps: int = DEFAULT_MAX_GRASPS,
+        num_points: int = DEFAULT_NUM_POINTS,
+        voxel_size: float = DEFAULT_VOXEL_SIZE,
+        camera_resolution: int = 128,
+        randomize_camera: bool = False,
+        success_threshold: float = 0.1,
+        collision_force_threshold: float = 1e-2,
+        reconfiguration_freq: int | None = None,
+        **kwargs,
+    ):
+        if scene_type not in (*SCENE_TYPES, "mixed"):
+            raise ValueError(f"unknown scene_type {scene_type!r}; expected one of {(*SCENE_TYPES, 'mixed')}")
+        if num_objects is not None and num_objects <= 0:
+            raise ValueError(f"num_objects must be positive or None, got {num_objects}")
+        for name, value in (("max_grasps", max_grasps), ("num_points", num_points), ("camera_resolution", camera_resolution)):
+            if value <= 0:
+                raise ValueError(f"{name} must be positive, got {value}")
+        if voxel_size <= 0:
+            raise ValueError(f"voxel_size must be positive, got {voxel_size}")
+        obs_mode = kwargs.get("obs_mode", "state")
+        if obs_mode is not None and obs_mode not in self.SUPPORTED_OBS_MODES:
+            raise ValueError(f"unsupported obs_mode {obs_mode!r} for GraspClutter-v1; expected one of {self.SUPPORTED_OBS_MODES}")
+        self.scene_type = scene_type
+        self.num_objects = num_objects
+        self.object_set = make_object_set(object_source)  # raises on a missing / empty folder
+        self.max_grasps = max_grasps
+        self.num_points = num_points
+        self.voxel_size = voxel_size
+        self.camera_resolution = camera_resolution
+        self.randomize_camera = randomize_camera
+        self.success_threshold = success_threshold
+        self.collision_force_threshold = collision_force_threshold
+        num_envs = kwargs.get("num_envs", 1)
+        if reconfiguration_freq is None:
+            # A new clutter every episode on one env; fixed clutter per sub-scene when batched.
+            reconfiguration_freq = 1 if num_envs == 1 else 0
+        self.layouts: list[SceneGeometry] = []
+        self.grasp_sets: list[GraspSet] = []
+        super().__init__(*args, robot_uids=robot_uids, reconfiguration_freq=reconfiguration_freq, **kwargs)
+
+    # ------------------------------------------------------------------ configuration
+
+    @property
+    def _default_sim_config(self):
+        return SimConfig(sim_freq=100, control_freq=FPS)
+
+    @property
+    def _default_sensor_configs(self):
+        eye = WORKSPACE_CENTER + np.array([0.32, 0.0, 0.30])
+        if self.randomize_camera and self._episode_seed is not None:
+            rng = np.random.default_rng(int(self._episode_seed[0]) + 7919)
+            azimuth = rng.uniform(-np.pi / 2, np.pi / 2)
+            elevation = rng.uniform(np.deg2rad(35), np.deg2rad(65))
+            radius = rng.uniform(0.5, 0.7)
+            eye = WORKSPACE_CENTER + radius * np.array(
+                [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)]
+            )
+        pose = sapien_utils.look_at(eye=eye.tolist(), target=[WORKSPACE_CENTER[0], WORKSPACE_CENTER[1], 0.06])
+        res = self.camera_resolution
+        return [CameraConfig("depth_camera", pose, res, res, np.deg2rad(50), 0.05, 2.0)]
+
+    @property
+    def _default_human_render_camera_configs(self):
+        pose = sapien_utils.look_at([0.35, 0.45, 0.45], [WORKSPACE_CENTER[0] - 0.05, 0.0, 0.08])
+        return CameraConfig("render_camera", pose, 512, 512, 1.0, 0.01, 100)
+
+    # ------------------------------------------------------------------ loading
+
+    def _load_agent(self, options: dict):
+        super()._load_agent(options, sapien.Pose(p=ROBOT_BASE_POSITION.tolist()))
+
+    def _load_scene(self, options: dict):
+        self.table_scene = TableSceneBuilder(self, robot_init_qpos_noise=0.0)
+        self.table_scene.build()
+        self.layouts, self.grasp_sets, self.objects = [], [], []
+        grasps = torch.zeros(self.num_envs, self.max_grasps, GRASP_DIM)
+        grasps_mask = torch.zeros(self.num_envs, self.max_grasps)
+        surface_clouds, surface_masks = [], []
+        material = sapien.physx.PhysxMaterial(0.6, 0.5, 0.0)
+        for i in range(self.num_envs):
+            rng = np.random.default_rng(int(self._episode_seed[i]))
+            layout, grasp_set = self._generate_scene(rng)
+            self.layouts.append(layout)
+            self.grasp_sets.append(grasp_set)
+            padded, mask = grasp_set.to_padded(self.max_grasps)
+            grasps[i], grasps_mask[i] = torch.from_numpy(padded), torch.from_numpy(mask)
+            self.objects.append(
+                [self._build_object(obj, pose, i, j, material) for j, (obj, pose) in enumerate(zip(layout.objects, layout.object_poses))]
+            )
+            surface = torch.from_numpy(sample_scene_surface(layout, rng)).float()
+            generator = torch.Generator().manual_seed(int(self._episode_seed[i]))
+            cloud, cloud_mask = resample(voxel_downsample(surface, self.voxel_size), self.num_points, generator)
+            surface_clouds.append(cloud)
+            surface_masks.append(cloud_mask)
+        self.grasps = grasps.to(self.device)
+        self.grasps_mask = grasps_mask.to(self.device)
+        self.grasp_poses = se3.pose_to_matrix(self.grasps[..., :3], self.grasps[..., 3:7])  # (B, M, 4, 4)
+        self.mesh_point_cloud = torch.stack(surface_clouds).to(self.device)
+        self.mesh_point_cloud_mask = torch.stack(surface_masks).to(self.device)
+        self.target_grasp_index = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
+        self._prev_tcp_pose = None
+        self._tcp_twist = torch.zeros(self.num_envs, 6, device=self.device)
+
+    def _generate_scene(self, rng: np.random.Generator) -> tuple[SceneGeometry, GraspSet]:
+        """A layout with at least one grasp candidate (redrawn from the same rng otherwise)."""
+        for _ in range(20):
+            scene_type = self.scene_type if self.scene_type != "mixed" else SCENE_TYPES[int(rng.integers(2))]
+            layout = generate_layout(self.object_set, rng, scene_type, self.num_objects)
+            grasp_set = sample_grasps(layout, rng, max_grasps=self.max_grasps)
+            if len(grasp_set.scores) > 0:
+                return layout, grasp_set
+        raise RuntimeError("no graspable clutter scene found in 20 layouts; check the object set")
+
+    def _build_object(self, obj, pose: np.ndarray, env: int, index: int, material):
+        builder = self.scene.create_actor_builder()
+        add_collision_shapes(builder, obj.shapes, material, obj.density)
+        if self.scene.can_render():
+            color = sapien.render.RenderMaterial(base_color=list(obj.color))
+            if obj.mesh_file is not None:
+                builder.add_visual_from_file(
+                    obj.mesh_file, sapien.Pose(p=obj.mesh_offset.tolist()), scale=[obj.mesh_scale] * 3
+                )
+            else:
+                for shape in obj.shapes:
+                    local = matrix_to_sapien_pose(shape.local_pose)
+                    if shape.kind == "box":
+                        builder.add_box_visual(local, half_size=shape.params, material=color)
+                    elif shape.kind == "sphere":
+                        builder.add_sphere_visual(local, radius=shape.params[0], material=color)
+                    elif shape.kind == "cylinder":
+                        builder.add_cylinder_visual(local, radius=shape.params[0], half_length=shape.params[1], material=color)
+                    elif shape.kind == "capsule":
+                        builder.add_capsule_visual(local, radius=shape.params[0], half_length=shape.params[1], material=color)
+                    else:
+                        builder.add_visual_from_file(convex_part_file(shape.vertices), local, material=color)
+        builder.set_scene_idxs([env])
+        builder.initial_pose = matrix_to_sapien_pose(pose)
+        return builder.build(name=f"env{env}-object{index}-{obj.name}")
+
+    # ------------------------------------------------------------------ episodes
+
+    def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
+        with torch.device(self.device):
+            b = len(env_idx)
+            self.table_scene.table.set_pose(self.table_scene.table.pose)
+            # Objects back to their settled layout poses, at rest.
+            for i in env_idx.tolist():
+                for actor, pose in zip(self.objects[i], self.layouts[i].object_poses):
+                    actor.set_pose(matrix_to_sapien_pose(pose))
+                    actor.set_linear_velocity(torch.zeros(1, 3))
+                    actor.set_angular_velocity(torch.zeros(1, 3))
+            qpos = options.get("init_qpos")
+            if qpos is None:
+                noise = torch.as_tensor(self._batched_episode_rng[env_idx].normal(0, 0.02, 9), dtype=torch.float32)
+                qpos = torch.as_tensor(REST_QPOS, dtype=torch.float32) + noise.reshape(b, 9)
+            else:
+                qpos = torch.as_tensor(qpos, dtype=torch.float32).reshape(-1, torch.as_tensor(qpos).shape[-1]).expand(b, -1).clone()
+                if qpos.shape[-1] == 7:
+                    qpos = torch.cat([qpos, torch.full((b, 2), 0.04)], -1)
+                if qpos.shape[-1] != 9 or not torch.isfinite(qpos).all():
+                    raise ValueError(f"options['init_qpos'] must be finite with 7 or 9 joint values, got shape {tuple(qpos.shape)}")
+            qpos[:, 7:] = 0.04
+            self.agent.reset(qpos)
+            self.agent.robot.set_pose(sapien.Pose(p=ROBOT_BASE_POSITION.tolist()))
+            self._set_target(env_idx, options.get("target_grasp_index"))
+            self._tcp_twist[env_idx] = 0.0
+            self._prev_tcp_pose = None
+
+    def _set_target(self, env_idx: torch.Tensor, requested: Any) -> None:
+        counts = self.grasps_mask[env_idx].sum(-1).long()
+        if requested is None:
+            draws = torch.as_tensor(self._batched_episode_rng[env_idx].random_sample(), dtype=torch.float32, device=self.device)
+            index = (draws.reshape(-1) * counts).long().clamp(max=counts - 1)
+        else:
+            index = torch.as_tensor(requested, dtype=torch.long, device=self.device).reshape(-1).expand(len(env_idx))
+            bad = (index < 0) | (index >= counts)
+            if bad.any():
+                raise ValueError(
+                    f"target_grasp_index {index[bad].tolist()} out of range: scenes have {counts[bad].tolist()} grasp candidates"
+                )
+        self.target_grasp_index[env_idx] = index
+
+    # ------------------------------------------------------------------ task quantities
+
+    @property
+    def tcp_pose_matrix(self) -> torch.Tensor:
+        """``(B, 4, 4)`` TCP pose in the world frame."""
+        pose = self.agent.tcp.pose
+        return se3.pose_to_matrix(pose.p, pose.q)
+
+    @property
+    def target_grasp_pose(self) -> torch.Tensor:
+        """``(B, 4, 4)`` the target grasp (TCP at the grasp)."""
+        return self.grasp_poses[torch.arange(self.num_envs, device=self.device), self.target_grasp_index]
+
+    @property
+    def target_pregrasp_pose(self) -> torch.Tensor:
+        """``(B, 4, 4)`` the target grasp moved ``PREGRASP_DISTANCE`` back along its approach (z) axis."""
+        offset = torch.eye(4, device=self.device)
+        offset[2, 3] = -PREGRASP_DISTANCE
+        return self.target_grasp_pose @ offset
+
+    def pregrasp_distance(self) -> torch.Tensor:
+        """``(B,)`` pose distance (NOTES.md, shared-control weights) of the TCP to the pre-grasp,
+        the smaller over the grasp and its pi-about-z twin (parallel-jaw symmetry)."""
+        tcp = self.tcp_pose_matrix
+        target = self.target_pregrasp_pose
+        d = se3.pose_distance(target, tcp, se3.SHARED_CONTROL_ROT_WEIGHT)
+        d_twin = se3.pose_distance(se3.rotate_about_z(target, np.pi), tcp, se3.SHARED_CONTROL_ROT_WEIGHT)
+        return torch.minimum(d, d_twin)
+
+    def robot_in_collision(self) -> torch.Tensor:
+        """``(B,)`` bool: any robot link but the base touches something with force above threshold."""
+        links = [link.name for link in self.agent.robot.get_links() if link.name not in ("panda_link0",)]
+        forces = self.agent.robot.get_net_contact_forces(links)
+        return (forces.norm(dim=-1) > self.collision_force_threshold).any(-1)
+
+    def evaluate(self) -> dict:
+        distance = self.pregrasp_distance()
+        success = distance < self.success_threshold
+        return dict(
+            success=success,
+            is_success=success,
+            collision=self.robot_in_collision(),
+            pregrasp_distance=distance,
+            target_grasp_index=self.target_grasp_index.clone(),
+            target_pregrasp_pose=se3.matrix_to_pose(self.target_pregrasp_pose),
+        )
+
+    def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        return 1.0 - torch.tanh(5.0 * info["pregrasp_distance"]) - info["collision"].float()
+
+    def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        return self.compute_dense_reward(obs, action, info) / 1.0
+
+    # ------------------------------------------------------------------ stepping and observations
+
+    def step(self, action):
+        if isinstance(action, (torch.Tensor, np.ndarray, list, tuple)):
+            values = torch.as_tensor(np.asarray(action, dtype=np.float32) if not isinstance(action, torch.Tensor) else action)
+            if not torch.isfinite(values).all():
+                raise ValueError(f"action contains NaN or inf: {values.tolist()}")
+        return super().step(action)
+
+    def _before_control_step(self):
+        self._prev_tcp_pose = self.tcp_pose_matrix
+
+    def _after_control_step(self):
+        if self.gpu_sim_enabled:
+            self.scene._gpu_fetch_all()
+        if self._prev_tcp_pose is not None:
+            self._tcp_twist = se3.body_twist(self._prev_tcp_pose, self.tcp_pose_matrix, 1.0 / self.control_freq)
+
+    def _get_obs_extra(self, info: dict):
+        pose = self.agent.tcp.pose
+        extra = dict(
+            tcp_pose=torch.cat([pose.p, pose.q], -1),
+            tcp_twist=self._tcp_twist.clone(),
+            grasps=self.grasps.clone(),
+            grasps_mask=self.grasps_mask.clone(),
+        )
+        if self.obs_mode == "pointcloud":
+            extra["point_cloud"], extra["point_cloud_mask"] = self.capture_point_cloud()
+        else:
+            extra["point_cloud"], extra["point_cloud_mask"] = self.mesh_point_cloud.clone(), self.mesh_point_cloud_mask.clone()
+        return extra
+
+    def capture_point_cloud(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Render the depth camera and process its cloud: ``(B, N, 6)``, ``(B, N)``."""
+        raw = sensor_data_to_pointcloud(
+            dict(sensor_param=self.get_sensor_params(), sensor_data=self._get_obs_sensor_data()), self._sensors
+        )["pointcloud"]
+        xyz = raw["xyzw"][..., :3]
+        rgb = raw["rgb"].float() / 255.0
+        seg = raw["segmentation"][..., 0]
+        keep = (seg != 0) & ~torch.isin(seg, self._robot_segmentation_ids)
+        return process_point_cloud(xyz, rgb, keep, self.num_points, self.voxel_size)
+
+    @property
+    def _robot_segmentation_ids(self) -> torch.Tensor:
+        ids = [obj.entity.per_scene_id for link in self.agent.robot.get_links() for obj in link._objs]
+        return torch.as_tensor(sorted(set(ids)), device=self.device)
+
+    def get_obs(self, info: dict | None = None, unflattened: bool = False):
+        if self.obs_mode == "pointcloud":
+            # The processed cloud lives in `extra`; ManiSkill's raw per-pixel cloud is not returned.
+            info = self.get_info() if info is None else info
+            return dict(agent=self._get_obs_agent(), extra=self._get_obs_extra(info))
+        return super().get_obs(info, unflattened)

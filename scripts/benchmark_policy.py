@@ -1,0 +1,107 @@
+"""Benchmark the RT-V3 policy on CPU: ``select_action`` latency and training throughput.
+
+Usage: ``python scripts/benchmark_policy.py [--threads 2] [--steps 200] [--train-batches 5]``
+
+Inputs are synthetic but shaped like the dataset (N = 2048 points, M = 64 grasps, T = 8, H = 12).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from rtv3_maniskill import features as ft
+from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
+from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
+
+
+def synthetic_batch(batch: int, cfg: RTV3Config, seed: int = 0) -> dict[str, torch.Tensor]:
+    """A batch with a straight-line EE history, points on a table + box, grasps around the box."""
+    g = torch.Generator().manual_seed(seed)
+    t, h, n, m = cfg.n_obs_steps, cfg.horizon, cfg.num_points, cfg.max_grasps
+    state = torch.zeros(batch, t, ft.STATE_DIM)
+    start = torch.tensor([0.3, 0.0, 0.4]) + 0.05 * torch.randn(batch, 1, 3, generator=g)
+    velocity = torch.tensor([0.0, 0.05, -0.1])
+    state[..., ft.EE_POS] = start + velocity * ft.DT * torch.arange(t)[None, :, None]
+    state[..., 3] = 0.0
+    state[..., 4] = 1.0  # gripper pointing down (180 deg about x)
+    state[..., 7:10] = velocity * torch.tensor([1.0, -1.0, -1.0])
+    table = torch.rand(batch, n // 2, 3, generator=g) * torch.tensor([0.6, 0.6, 0.0]) + torch.tensor([0.0, -0.3, 0.0])
+    box = torch.rand(batch, n - n // 2, 3, generator=g) * 0.06 + torch.tensor([0.4, 0.0, 0.0])
+    xyz = torch.cat([table, box], 1)
+    cloud = torch.cat([xyz, torch.rand(batch, n, 3, generator=g)], -1)
+    grasp_pos = torch.tensor([0.43, 0.03, 0.1]) + 0.02 * torch.randn(batch, m, 3, generator=g)
+    grasp_quat = torch.tensor([0.0, 1.0, 0.0, 0.0]).expand(batch, m, 4)
+    grasps = torch.cat([grasp_pos, grasp_quat, torch.full((batch, m, 1), 0.05), torch.ones(batch, m, 1)], -1)
+    return {
+        ft.STATE: state,
+        ft.POINT_CLOUD: cloud,
+        ft.POINT_CLOUD_MASK: torch.ones(batch, n),
+        ft.GRASPS: grasps,
+        ft.GRASPS_MASK: torch.ones(batch, m),
+        ft.ACTION: (velocity * torch.tensor([1.0, -1.0, -1.0])).repeat(batch, h, 2) * torch.tensor([1.0] * 3 + [0.0] * 3),
+        f"{ft.ACTION}_is_pad": torch.zeros(batch, h, dtype=torch.bool),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--steps", type=int, default=200, help="select_action calls timed")
+    parser.add_argument("--train-batches", type=int, default=5)
+    parser.add_argument("--train-batch-size", type=int, default=64)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+
+    cfg = RTV3Config(device="cpu")
+    policy = RTV3Policy(cfg)
+    print(f"parameters: {sum(p.numel() for p in policy.parameters()):,}  threads: {torch.get_num_threads()}")
+
+    full = synthetic_batch(1, cfg)
+    single = {k: v[:, -1] for k, v in full.items() if k.startswith("observation.")}
+    policy.eval()
+    policy.reset()
+    for _ in range(10):
+        policy.select_action(single)
+    times = []
+    for _ in range(args.steps):
+        t0 = time.perf_counter()
+        policy.select_action(single)
+        times.append((time.perf_counter() - t0) * 1e3)
+    q = statistics.quantiles(times, n=20)
+    print(
+        f"select_action (B=1, N={cfg.num_points}, M={cfg.max_grasps}): median {statistics.median(times):.2f} ms, "
+        f"p5 {q[0]:.2f} ms, p95 {q[-1]:.2f} ms over {args.steps} calls"
+    )
+    t0 = time.perf_counter()
+    for _ in range(20):
+        policy.predict_step0_mixture(single, update_history=False)
+    print(f"predict_step0_mixture (B=1): mean {(time.perf_counter() - t0) / 20 * 1e3:.2f} ms")
+
+    batch = synthetic_batch(args.train_batch_size, cfg, seed=1)
+    policy.train()
+    optimizer = torch.optim.Adam(policy.parameters(), lr=1e-3)
+    loss, _ = policy.forward(batch)
+    loss.backward()
+    optimizer.step()
+    t0 = time.perf_counter()
+    for _ in range(args.train_batches):
+        optimizer.zero_grad()
+        loss, _ = policy.forward(batch)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
+        optimizer.step()
+    elapsed = time.perf_counter() - t0
+    rate = args.train_batches * args.train_batch_size / elapsed
+    print(
+        f"training (batch {args.train_batch_size}, forward+backward+step): {rate:.1f} samples/s, "
+        f"{elapsed / args.train_batches * 1e3:.0f} ms/step"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,452 @@
+"""Posterior decision making (paper Sec. "Posterior Decision Making") and the shared controller."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.stats import chi2, multivariate_normal
+
+from rtv3_maniskill import features
+from rtv3_maniskill.shared_control import posterior
+from rtv3_maniskill.shared_control.shared_controller import SharedControlConfig, SharedController, surface_distance
+from rtv3_maniskill.twist_mixture import TwistMixture
+
+DT = torch.float64
+
+
+def random_spd(gen: torch.Generator, *shape: int, scale: float = 0.1) -> torch.Tensor:
+    a = torch.randn(*shape, 3, 3, generator=gen, dtype=DT) * scale
+    return a @ a.transpose(-1, -2) + 0.01 * torch.eye(3, dtype=DT)
+
+
+def linear_rotation(weight: torch.Tensor, bias: torch.Tensor, cov: torch.Tensor):
+    """omega_k(v) = W_k v + b_k, Gamma_k constant: a hand-built translation-conditioned rotation."""
+
+    def fn(v: torch.Tensor):
+        omega = torch.einsum("kij,bkj->bki", weight.to(v.dtype), v) + bias.to(v.dtype)
+        return omega, cov.to(v.dtype).expand(*v.shape[:-1], 3, 3)
+
+    return fn
+
+
+# --------------------------------------------------------------------------- Kalman fusion
+
+
+def test_kalman_update_equals_information_form_product():
+    gen = torch.Generator().manual_seed(0)
+    mean = torch.randn(5, 3, generator=gen, dtype=DT) * 0.1
+    cov = random_spd(gen, 5)
+    obs = torch.randn(5, 3, generator=gen, dtype=DT) * 0.1
+    obs_cov = random_spd(gen, 5)
+    new_mean, new_cov, gain = posterior.kalman_update(mean, cov, obs, obs_cov)
+    info = torch.linalg.inv(cov) + torch.linalg.inv(obs_cov)
+    expected_cov = torch.linalg.inv(info)
+    expected_mean = (expected_cov @ (torch.linalg.solve(cov, mean[..., None]) + torch.linalg.solve(obs_cov, obs[..., None])))[..., 0]
+    torch.testing.assert_close(new_cov, expected_cov, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(new_mean, expected_mean, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(gain, cov @ torch.linalg.inv(cov + obs_cov))
+
+
+def test_fused_gaussian_is_the_normalised_product_of_prior_and_likelihood():
+    """log N(x; mu, S) + log N(v_u; x, S_u) - log N(x; mu', S') is constant in x and equals
+    log N(v_u; mu, S + S_u): the fusion and the class-weight marginal agree (brute force)."""
+    rng = np.random.default_rng(1)
+    mu, v_u = rng.normal(0, 0.1, 3), rng.normal(0, 0.1, 3)
+    a, b = rng.normal(0, 0.2, (3, 3)), rng.normal(0, 0.2, (3, 3))
+    sigma, s_u = a @ a.T + 0.01 * np.eye(3), b @ b.T + 0.01 * np.eye(3)
+    new_mean, new_cov, _ = posterior.kalman_update(*(torch.tensor(x) for x in (mu, sigma, v_u, s_u)))
+    xs = rng.normal(0, 0.3, (50, 3))
+    log_ratio = (
+        multivariate_normal(mu, sigma).logpdf(xs)
+        + multivariate_normal(v_u, s_u).logpdf(xs)  # N(v_u; x, S_u) = N(x; v_u, S_u)
+        - multivariate_normal(new_mean.numpy(), new_cov.numpy()).logpdf(xs)
+    )
+    assert np.ptp(log_ratio) < 1e-8
+    assert log_ratio[0] == pytest.approx(multivariate_normal(mu, sigma + s_u).logpdf(v_u), abs=1e-8)
+
+
+def make_two_class_mixture(weights=(0.5, 0.5), batch: int = 1, dtype=torch.float32) -> TwistMixture:
+    """Class 0 moves along -x and rolls -z, class 1 along +x and rolls +z (rotation depends on v)."""
+    mu = torch.tensor([[-0.3, 0.0, 0.0], [0.3, 0.0, 0.0]], dtype=dtype)
+    cov = torch.diag_embed(torch.tensor([[0.002, 0.002, 0.002], [0.002, 0.002, 0.002]], dtype=dtype))
+    weight = torch.zeros(2, 3, 3)
+    weight[:, 2, 0] = 2.0  # omega_z = 2 v_x
+    rot = linear_rotation(weight, torch.zeros(2, 3), 0.01 * torch.eye(3))
+    lw = torch.log(torch.tensor(weights, dtype=dtype))
+    return TwistMixture(lw.expand(batch, 2).clone(), mu.expand(batch, 2, 3).clone(), cov.expand(batch, 2, 3, 3).clone(), rot)
+
+
+def user_covs(batch: int = 1, trans: float = 0.03, rot: float = 0.1):
+    eye = torch.eye(3, dtype=DT)
+    return (trans * eye).expand(batch, 3, 3), (rot * eye).expand(batch, 3, 3)
+
+
+def test_fuse_user_command_per_class_translation_then_conditioned_rotation():
+    gen = torch.Generator().manual_seed(2)
+    b, k = 2, 4
+    mu = torch.randn(b, k, 3, generator=gen, dtype=DT) * 0.1
+    sigma = random_spd(gen, b, k)
+    weight = torch.randn(k, 3, 3, generator=gen, dtype=DT)
+    bias = torch.randn(k, 3, generator=gen, dtype=DT) * 0.1
+    gamma = random_spd(gen, k)[None]
+    rot = linear_rotation(weight, bias, gamma)
+    mixture = TwistMixture(torch.log_softmax(torch.randn(b, k, generator=gen, dtype=DT), -1), mu, sigma, rot)
+    user = torch.randn(b, 6, generator=gen, dtype=DT) * 0.1
+    s_u, g_u = random_spd(gen, b), random_spd(gen, b)
+    fused = posterior.fuse_user_command(mixture, user, s_u, g_u)
+    exp_mu, exp_sigma, _ = posterior.kalman_update(mu, sigma, user[:, None, :3].expand(b, k, 3), s_u[:, None])
+    torch.testing.assert_close(fused.trans_mean, exp_mu)
+    torch.testing.assert_close(fused.trans_cov, exp_sigma)
+    omega_at_fused, gamma_at_fused = rot(exp_mu)
+    exp_omega, exp_gamma, _ = posterior.kalman_update(omega_at_fused, gamma_at_fused, user[:, None, 3:].expand(b, k, 3), g_u[:, None])
+    torch.testing.assert_close(fused.rot_mean, exp_omega)
+    torch.testing.assert_close(fused.rot_cov, exp_gamma)
+
+
+@pytest.mark.parametrize("reweight_at", ["prior", "fused"])
+def test_class_weights_match_closed_form(reweight_at):
+    mixture = make_two_class_mixture(weights=(0.3, 0.7), dtype=DT)
+    user = torch.tensor([[0.05, 0.02, -0.01, 0.1, 0.0, 0.05]], dtype=DT)
+    s_u, g_u = user_covs()
+    fused = posterior.fuse_user_command(mixture, user, s_u, g_u, reweight_rotation_at=reweight_at)
+    logs = []
+    for k in range(2):
+        mu, sigma = mixture.trans_mean[0, k].numpy(), mixture.trans_cov[0, k].numpy()
+        v_at = fused.trans_mean if reweight_at == "fused" else mixture.trans_mean
+        omega, gamma = mixture.rotation_given_translation(v_at)
+        logs.append(
+            math.log(mixture.weights[0, k])
+            + multivariate_normal(mu, sigma + s_u[0].numpy()).logpdf(user[0, :3].numpy())
+            + multivariate_normal(omega[0, k].numpy(), gamma[0, k].numpy() + g_u[0].numpy()).logpdf(user[0, 3:].numpy())
+        )
+    expected = np.exp(np.array(logs) - np.logaddexp(*logs))
+    np.testing.assert_allclose(fused.weights[0].numpy(), expected, rtol=1e-9)
+
+
+def test_user_command_near_a_class_raises_its_weight():
+    mixture = make_two_class_mixture()
+    s_u, g_u = user_covs()
+    toward_1 = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.54]])
+    fused = posterior.fuse_user_command(mixture, toward_1, s_u, g_u)
+    assert fused.weights[0, 1] > 0.99
+    # fused translation of class 1 lies between the user command and the prior mean
+    assert 0.27 < fused.trans_mean[0, 1, 0] < 0.3
+    # the closer the command, the higher the weight
+    weaker = posterior.fuse_user_command(mixture, torch.tensor([[0.05, 0.0, 0.0, 0.0, 0.0, 0.0]]), s_u, g_u)
+    assert 0.5 < weaker.weights[0, 1] < fused.weights[0, 1]
+    toward_0 = -toward_1
+    assert posterior.fuse_user_command(mixture, toward_0, s_u, g_u).weights[0, 0] > 0.9
+
+
+def test_posterior_is_finite_for_degenerate_inputs():
+    mixture = make_two_class_mixture()
+    mixture.trans_cov = torch.zeros_like(mixture.trans_cov)  # singular network output
+    s_u, g_u = user_covs()
+    far = torch.tensor([[50.0, -50.0, 50.0, 30.0, 30.0, -30.0]])
+    fused = posterior.fuse_user_command(mixture, far, s_u, g_u)
+    for t in (fused.log_weights, fused.trans_mean, fused.trans_cov, fused.rot_mean, fused.rot_cov):
+        assert torch.isfinite(t).all()
+    assert torch.isfinite(posterior.mixture_mode(fused)).all()
+    assert fused.weights.sum() == pytest.approx(1.0)
+
+
+def test_posterior_rejects_bad_inputs():
+    mixture = make_two_class_mixture()
+    s_u, g_u = user_covs()
+    with pytest.raises(ValueError, match="user_twist"):
+        posterior.fuse_user_command(mixture, torch.zeros(1, 5), s_u, g_u)
+    with pytest.raises(ValueError, match="NaN"):
+        posterior.fuse_user_command(mixture, torch.full((1, 6), math.nan), s_u, g_u)
+    bad = make_two_class_mixture()
+    bad.trans_mean[0, 0, 0] = math.nan
+    with pytest.raises(ValueError, match="trans_mean"):
+        posterior.fuse_user_command(bad, torch.zeros(1, 6), s_u, g_u)
+    with pytest.raises(ValueError, match="reweight_rotation_at"):
+        posterior.fuse_user_command(mixture, torch.zeros(1, 6), s_u, g_u, reweight_rotation_at="both")
+
+
+# --------------------------------------------------------------------------- mode, entropy
+
+
+def _factorized(weights, means, trans_var, rot_var) -> posterior.FactorizedTwistMixture:
+    k = len(weights)
+    lw = torch.log(torch.tensor([weights], dtype=DT))
+    means = torch.tensor([means], dtype=DT)
+    t_cov = torch.diag_embed(torch.tensor([[[v] * 3 for v in trans_var]], dtype=DT))
+    r_cov = torch.diag_embed(torch.tensor([[[v] * 3 for v in rot_var]], dtype=DT))
+    assert means.shape == (1, k, 6)
+    return posterior.FactorizedTwistMixture(lw, means[..., :3], t_cov, means[..., 3:], r_cov, lw)
+
+
+def test_mode_of_single_gaussian_is_its_mean():
+    m = _factorized([1.0], [[0.1, -0.2, 0.3, 0.4, 0.0, -0.1]], [0.01], [0.02])
+    torch.testing.assert_close(posterior.mixture_mode(m)[0], m.means[0, 0])
+
+
+def test_mode_between_overlapping_components_beats_every_component_mean():
+    # Two equal, strongly overlapping classes: the mode is midway, not at either mean.
+    m = _factorized([0.5, 0.5], [[-0.05, 0, 0, 0, 0, 0], [0.05, 0, 0, 0, 0, 0]], [0.01, 0.01], [0.01, 0.01])
+    mode = posterior.mixture_mode(m)
+    assert mode[0].abs().max() < 1e-4
+    dens_mode = posterior.mixture_log_density(mode[:, None], m)
+    dens_means = posterior.mixture_log_density(m.means, m)
+    assert (dens_mode > dens_means + 1e-4).all()
+
+
+def test_mode_is_at_least_as_dense_as_random_samples():
+    gen = torch.Generator().manual_seed(3)
+    k = 5
+    m = posterior.FactorizedTwistMixture(
+        torch.log_softmax(torch.randn(1, k, generator=gen, dtype=DT), -1),
+        torch.randn(1, k, 3, generator=gen, dtype=DT) * 0.1,
+        random_spd(gen, 1, k, scale=0.05),
+        torch.randn(1, k, 3, generator=gen, dtype=DT) * 0.2,
+        random_spd(gen, 1, k, scale=0.1),
+        torch.zeros(1, k, dtype=DT),
+    )
+    samples = m.means[:, torch.randint(0, k, (4000,), generator=gen)] + 0.05 * torch.randn(1, 4000, 6, generator=gen, dtype=DT)
+    best_sample = posterior.mixture_log_density(samples, m).max()
+    assert posterior.mixture_log_density(posterior.mixture_mode(m)[:, None], m)[0, 0] >= best_sample
+
+
+def test_entropy_bounds_bracket_monte_carlo_entropy():
+    gen = torch.Generator().manual_seed(4)
+    k = 3
+    lw = torch.log(torch.tensor([[0.2, 0.5, 0.3]], dtype=DT))
+    means = torch.randn(1, k, 3, generator=gen, dtype=DT) * 0.1
+    covs = random_spd(gen, 1, k, scale=0.05)
+    lower, upper = posterior.mixture_entropy_bounds(lw, means, covs)
+    comp = torch.multinomial(lw.exp()[0], 20000, replacement=True, generator=gen)
+    chol = torch.linalg.cholesky(covs[0])
+    x = means[0, comp] + (chol[comp] @ torch.randn(20000, 3, 1, generator=gen, dtype=DT))[..., 0]
+    logp = torch.logsumexp(lw[0] + posterior.gaussian_log_prob(x[:, None], means[0], covs[0]), -1)
+    mc = -logp.mean()
+    assert lower[0] - 0.02 <= mc <= upper[0] + 0.02
+    assert lower[0] < upper[0]
+    # single Gaussian: the upper bound is its exact entropy
+    _, up1 = posterior.mixture_entropy_bounds(torch.zeros(1, 1, dtype=DT), means[:, :1], covs[:, :1])
+    assert up1[0] == pytest.approx(float(posterior.gaussian_entropy(covs[0, 0])))
+
+
+# --------------------------------------------------------------------------- user covariance, OOD
+
+
+def test_ood_threshold_is_chi2_quantile_on_squared_mahalanobis():
+    assert posterior.ood_threshold(0.85) == pytest.approx(chi2.ppf(0.85, 3))
+    mixture = make_two_class_mixture()
+    s_u, g_u = user_covs()
+    near = posterior.fuse_user_command(mixture, torch.tensor([[0.3, 0, 0, 0, 0, 0.6]]), s_u, g_u)
+    far = posterior.fuse_user_command(mixture, torch.tensor([[0.0, 0.0, 0.6, 0, 0, 0]]), s_u, g_u)
+    thr = posterior.ood_threshold(0.85)
+    assert not posterior.is_out_of_distribution(near, thr)[0]
+    assert posterior.is_out_of_distribution(far, thr)[0]
+    # (0.3^2 + 0.6^2) / (0.002 + 0.03) to the nearest class
+    assert far.trans_mahalanobis_sq.min() == pytest.approx((0.09 + 0.36) / 0.032, rel=1e-4)
+
+
+def test_user_covariance_follows_command_spread_but_not_below_floor():
+    est = posterior.UserCovarianceEstimator(batch_size=2)
+    torch.testing.assert_close(est.trans_cov[0], 0.03 * torch.eye(3, dtype=DT))
+    torch.testing.assert_close(est.rot_cov[1], 0.1 * torch.eye(3, dtype=DT))
+    rng = np.random.default_rng(5)
+    for _ in range(60):
+        noisy = torch.from_numpy(rng.normal(0.0, math.sqrt(0.05), 6))
+        steady = torch.tensor([0.1, 0.0, 0.0, 0.0, 0.0, 0.1], dtype=DT)
+        est.update(torch.stack([noisy, steady]), torch.tensor([True, True]))
+    # element 0 (noisy commands, variance 0.05): S_u moved from 0.03 towards 0.05
+    assert 0.035 < torch.diagonal(est.trans_cov[0]).mean() < 0.07
+    # element 1 (identical commands): shrinks, but det^(1/3) stays above the 0.01 floor
+    for cov in (est.trans_cov[1], est.rot_cov[1]):
+        geo = float(torch.linalg.det(cov)) ** (1 / 3)
+        assert 0.01 < geo < 0.0126
+    assert est.num_samples.tolist() == [14, 14]
+    est.update(torch.ones(2, 6, dtype=DT), torch.tensor([False, False]))  # inactive: nothing stored
+    assert est._count.tolist() == [60, 60]
+    est.reset()
+    torch.testing.assert_close(est.trans_cov[1], 0.03 * torch.eye(3, dtype=DT))
+
+
+# --------------------------------------------------------------------------- shared controller
+
+
+class HandBuiltPrior:
+    """Test double of the learned network: a fixed two-class step-0 mixture."""
+
+    def __init__(self, weights=(0.3, 0.7)):
+        self.weights = weights
+        self.mixture_calls = 0
+        self.action_calls = 0
+        self.resets = 0
+
+    def predict_step0_mixture(self, observation):
+        self.mixture_calls += 1
+        state = observation[features.STATE]
+        return make_two_class_mixture(self.weights, batch=1 if state.ndim == 1 else state.shape[0])
+
+    def select_action(self, observation):
+        self.action_calls += 1
+        state = observation[features.STATE]
+        b = 1 if state.ndim == 1 else state.shape[0]
+        return torch.tensor([[0.3, 0.0, 0.0, 0.0, 0.0, 0.6]]).expand(b, 6)  # class 1's most likely twist
+
+    def reset(self):
+        self.resets += 1
+
+
+def make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.0),), batch: int | None = None, grasps: int = 3):
+    state = torch.zeros(features.STATE_DIM)
+    state[features.EE_POS] = torch.tensor(ee)
+    state[features.EE_QUAT] = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    cloud = torch.zeros(8, 6)
+    mask = torch.zeros(8)
+    for i, p in enumerate(cloud_points):
+        cloud[i, :3] = torch.tensor(p)
+        mask[i] = 1.0
+    gmask = torch.zeros(4)
+    gmask[:grasps] = 1.0
+    obs = {
+        features.STATE: state,
+        features.POINT_CLOUD: cloud,
+        features.POINT_CLOUD_MASK: mask,
+        features.GRASPS: torch.zeros(4, features.GRASP_DIM),
+        features.GRASPS_MASK: gmask,
+    }
+    if batch is not None:
+        obs = {k: v.expand(batch, *v.shape).clone() for k, v in obs.items()}
+    return obs
+
+
+def test_no_input_far_from_objects_runs_the_prior_autonomously():
+    prior = HandBuiltPrior()
+    ctrl = SharedController(prior, SharedControlConfig(autonomy_cutoff_distance=0.07))
+    for user in (None, torch.zeros(6)):
+        action = ctrl.step(make_observation(ee=(0, 0, 0.3)), user)
+        assert ctrl.last_diagnostics.mode == "autonomous"
+        torch.testing.assert_close(action, torch.tensor([0.3, 0.0, 0.0, 0.0, 0.0, 0.6]))
+    assert action.shape == (6,)
+    # class weights shown are the prior's
+    torch.testing.assert_close(ctrl.last_diagnostics.class_weights[0].float(), torch.tensor([0.3, 0.7]))
+
+
+def test_no_input_near_the_object_surface_hands_control_to_the_user():
+    prior = HandBuiltPrior()
+    ctrl = SharedController(prior, SharedControlConfig(autonomy_cutoff_distance=0.07))
+    obs = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.25), (0.5, 0.5, 0.0)))
+    assert surface_distance(obs)[0] == pytest.approx(0.05)
+    action = ctrl.step(obs, None)
+    assert ctrl.last_diagnostics.mode == "user_only"
+    assert torch.equal(action, torch.zeros(6))
+    assert prior.action_calls == 0
+    # padded points (mask 0) do not count: the only valid point is far away
+    obs[features.POINT_CLOUD_MASK][0] = 0.0
+    ctrl.step(obs, None)
+    assert ctrl.last_diagnostics.mode == "autonomous"
+    # asynchronous mode off: no autonomy even far away
+    ctrl_sync = SharedController(HandBuiltPrior(), SharedControlConfig(asynchronous=False))
+    assert torch.equal(ctrl_sync.step(make_observation(), None), torch.zeros(6))
+
+
+def test_user_command_gives_shared_control_that_blends_towards_the_matching_class():
+    prior = HandBuiltPrior(weights=(0.7, 0.3))
+    ctrl = SharedController(prior)
+    user = torch.tensor([0.2, 0.0, 0.0, 0.0, 0.0, 0.0])
+    action = ctrl.step(make_observation(), user)
+    d = ctrl.last_diagnostics
+    assert d.mode == "shared" and not d.ood[0]
+    assert d.class_weights[0, 1] > 0.9 > d.prior_class_weights[0, 1]
+    # translation pulled from the user's 0.2 towards class 1's 0.3; rotation follows class 1 (omega_z = 2 v_x)
+    assert 0.2 < action[0] < 0.3
+    assert action[5] > 0.2
+    for name in ("trans_entropy_lower", "trans_entropy_upper", "rot_entropy_lower", "rot_entropy_upper"):
+        assert torch.isfinite(getattr(d, name)).all()
+    assert d.trans_entropy_lower[0] <= d.trans_entropy_upper[0]
+
+
+def test_ood_gate_hands_control_to_user_for_three_steps_then_gives_it_back():
+    prior = HandBuiltPrior()
+    ctrl = SharedController(prior, SharedControlConfig(ood_steps=3, adapt_user_covariance=False))
+    obs = make_observation()
+    far = torch.tensor([0.0, 0.0, 0.4, 0.0, 0.0, 0.0])  # orthogonal to both classes
+    near = torch.tensor([0.27, 0.0, 0.0, 0.0, 0.0, 0.0])
+    action = ctrl.step(obs, far)
+    d = ctrl.last_diagnostics
+    assert d.mode == "user_only" and d.ood[0]
+    torch.testing.assert_close(action, far.float())
+    torch.testing.assert_close(d.class_weights, d.prior_class_weights)  # weights kept
+    for _ in range(3):
+        action = ctrl.step(obs, near)
+        assert ctrl.last_diagnostics.mode == "user_only" and ctrl.last_diagnostics.ood[0]
+        torch.testing.assert_close(action, near.float())
+    action = ctrl.step(obs, near)
+    assert ctrl.last_diagnostics.mode == "shared" and not ctrl.last_diagnostics.ood[0]
+    assert not torch.allclose(action, near.float())
+    # reset clears the window
+    ctrl.step(obs, far)
+    ctrl.reset()
+    assert prior.resets == 1
+    ctrl.step(obs, near)
+    assert ctrl.last_diagnostics.mode == "shared"
+
+
+def test_velocity_limits_clamp_the_norms():
+    ctrl = SharedController(HandBuiltPrior(), SharedControlConfig(max_linear_speed=0.05, max_angular_speed=0.1))
+    action = ctrl.step(make_observation(), None)  # prior: |v| = 0.3, |w| = 0.6
+    assert action[:3].norm() == pytest.approx(0.05, rel=1e-5)
+    assert action[3:].norm() == pytest.approx(0.1, rel=1e-5)
+    torch.testing.assert_close(action[:3] / action[:3].norm(), torch.tensor([1.0, 0.0, 0.0]))
+
+
+def test_batched_step_mixes_modes_per_element():
+    prior = HandBuiltPrior()
+    ctrl = SharedController(prior)
+    obs = make_observation(batch=3)
+    obs[features.STATE][2, features.EE_POS] = torch.tensor([0.0, 0.0, 0.02])  # element 2 near the cloud
+    user = torch.tensor([[0.0] * 6, [0.27, 0, 0, 0, 0, 0], [0.0] * 6])
+    action = ctrl.step(obs, user)
+    assert action.shape == (3, 6)
+    assert ctrl.last_diagnostics.modes == ("autonomous", "shared", "user_only")
+    assert torch.equal(action[2], torch.zeros(6))
+    with pytest.raises(ValueError, match="batch size changed"):
+        ctrl.step(make_observation(batch=2), None)
+
+
+def test_bad_user_input_is_rejected_with_a_clear_error():
+    ctrl = SharedController(HandBuiltPrior())
+    with pytest.raises(ValueError, match="user_twist contains NaN"):
+        ctrl.step(make_observation(), torch.tensor([0.1, math.nan, 0, 0, 0, 0]))
+    with pytest.raises(ValueError, match=r"user_twist must have shape \(6,\)"):
+        ctrl.step(make_observation(), torch.zeros(5))
+    with pytest.raises(ValueError, match="user_twist must have shape"):
+        ctrl.step(make_observation(batch=2), torch.zeros(3, 6))
+    with pytest.raises(ValueError, match="observation.state"):
+        ctrl.step({}, None)
+    with pytest.raises(TypeError, match="predict_step0_mixture"):
+        SharedController(object())
+    with pytest.raises(ValueError, match="autonomy_cutoff_distance"):
+        SharedControlConfig(autonomy_cutoff_distance=-1.0)
+
+
+def test_empty_grasp_set_falls_back_to_user_only_without_calling_the_prior():
+    prior = HandBuiltPrior()
+    ctrl = SharedController(prior)
+    user = torch.tensor([0.02, 0.0, 0.0, 0.0, 0.0, 0.1])
+    action = ctrl.step(make_observation(grasps=0), user)
+    d = ctrl.last_diagnostics
+    assert d.mode == "user_only" and bool(d.fallback[0])
+    torch.testing.assert_close(action, user)
+    assert torch.equal(ctrl.step(make_observation(grasps=0), None), torch.zeros(6))
+    assert prior.mixture_calls == 0 and prior.action_calls == 0
+
+
+def test_user_covariance_adapts_across_steps():
+    ctrl = SharedController(HandBuiltPrior())
+    obs = make_observation()
+    rng = np.random.default_rng(6)
+    for _ in range(20):
+        ctrl.step(obs, torch.from_numpy(rng.normal(0.0, 0.01, 6)) + torch.tensor([0.27, 0, 0, 0, 0, 0.54]))
+    s_u = ctrl.last_diagnostics.user_trans_cov[0]
+    assert torch.diagonal(s_u).mean() < 0.025  # consistent user: trusted more than the initial 0.03
+    assert float(torch.linalg.det(s_u)) ** (1 / 3) > 0.01
