@@ -62,7 +62,8 @@ def main() -> None:
     print(f"parameters: {sum(p.numel() for p in policy.parameters()):,}  threads: {torch.get_num_threads()}")
 
     full = synthetic_batch(1, cfg)
-    single = {k: v[:, -1] for k, v in full.items() if k.startswith("observation.")}
+    single = {k: v for k, v in full.items() if k.startswith("observation.")}
+    single[ft.STATE] = full[ft.STATE][:, -1]  # one control step: (1, 27)
     policy.eval()
     policy.reset()
     for _ in range(10):

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from rtv3_maniskill.se3 import make_transform, se3_exp, so3_exp, so3_log
+from rtv3_maniskill.se3 import make_transform, se3_exp, so3_exp
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
 from rtv3_maniskill.shared_control.hindsight_optimization import VARIANTS, HindsightOptimization, HuberCost
 from rtv3_maniskill.shared_control.simulated_users import make_user

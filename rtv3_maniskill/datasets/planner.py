@@ -224,6 +224,7 @@ class PandaPlanner:
     ) -> None:
         self.config = config
         self.kin = kinematics if kinematics is not None else PandaKinematics()
+        self.scene = scene
         self.world = PandaCollisionWorld(self.kin, scene, config.margins)
         self._active_margins = config.margins
         self.velocity_limits = PANDA_VELOCITY_LIMITS * config.velocity_scale
@@ -233,6 +234,7 @@ class PandaPlanner:
 
     def set_scene(self, scene: SceneGeometry | None) -> None:
         """Replace the obstacles (the robot model is kept)."""
+        self.scene = scene
         self.world = PandaCollisionWorld(self.kin, scene, self.config.margins)
         self._active_margins = self.config.margins
 
@@ -461,10 +463,11 @@ class PandaPlanner:
             return _rest_trajectory(dense[0], self.config.control_dt), dense[:1]
         ss_wp = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
         spline = toppra.SplineInterpolator(ss_wp, dense, bc_type="natural")
+        # 0.5 % head-room: TOPP-RA's discretized solution may exceed a bound by ~0.02 %.
         constraints = [
-            toppra.constraint.JointVelocityConstraint(self.velocity_limits),
-            toppra.constraint.JointAccelerationConstraint(self.acceleration_limits),
-            _TcpSpeedConstraint(self.kin, self.config.max_tcp_speed),
+            toppra.constraint.JointVelocityConstraint(self.velocity_limits * 0.995),
+            toppra.constraint.JointAccelerationConstraint(self.acceleration_limits * 0.995),
+            _TcpSpeedConstraint(self.kin, self.config.max_tcp_speed * 0.995),
         ]
         n_grid = max(100, int(ss_wp[-1] / 0.01))
         grid = np.linspace(0.0, ss_wp[-1], n_grid + 1)

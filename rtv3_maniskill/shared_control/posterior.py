@@ -148,6 +148,8 @@ def _check_mixture(mixture: TwistMixture) -> tuple[int, int]:
     for name, t in (("log_weights", lw), ("trans_mean", mu), ("trans_cov", cov)):
         if torch.isnan(t).any() or (name != "log_weights" and not torch.isfinite(t).all()):
             raise ValueError(f"TwistMixture.{name} contains NaN or inf")
+    if not torch.isfinite(torch.logsumexp(lw, -1)).all():
+        raise ValueError("TwistMixture.log_weights are all -inf (or +inf) for some batch element")
     return b, k
 
 

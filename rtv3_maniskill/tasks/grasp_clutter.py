@@ -41,13 +41,7 @@ from rtv3_maniskill import se3
 from rtv3_maniskill.features import DEFAULT_MAX_GRASPS, DEFAULT_NUM_POINTS, FPS, GRASP_DIM
 from rtv3_maniskill.tasks.grasp_sampler import GraspSet, sample_grasps
 from rtv3_maniskill.tasks.object_library import convex_part_file, make_object_set
-from rtv3_maniskill.tasks.point_cloud import (
-    DEFAULT_VOXEL_SIZE,
-    process_point_cloud,
-    resample,
-    sample_scene_surface,
-    voxel_downsample,
-)
+from rtv3_maniskill.tasks.point_cloud import DEFAULT_VOXEL_SIZE, process_point_cloud, sample_scene_surface
 from rtv3_maniskill.tasks.scene_generation import (
     SCENE_TYPES,
     add_collision_shapes,
@@ -177,11 +171,14 @@ class GraspClutterEnv(BaseEnv):
             self.objects.append(
                 [self._build_object(obj, pose, i, j, material) for j, (obj, pose) in enumerate(zip(layout.objects, layout.object_poses))]
             )
-            surface = torch.from_numpy(sample_scene_surface(layout, rng)).float()
+            surface = torch.from_numpy(sample_scene_surface(layout, rng)).float()[None]
             generator = torch.Generator().manual_seed(int(self._episode_seed[i]))
-            cloud, cloud_mask = resample(voxel_downsample(surface, self.voxel_size), self.num_points, generator)
-            surface_clouds.append(cloud)
-            surface_masks.append(cloud_mask)
+            keep = torch.ones(surface.shape[:2], dtype=torch.bool)
+            cloud, cloud_mask = process_point_cloud(
+                surface[..., :3], surface[..., 3:], keep, self.num_points, self.voxel_size, generator
+            )
+            surface_clouds.append(cloud[0])
+            surface_masks.append(cloud_mask[0])
         self.grasps = grasps.to(self.device)
         self.grasps_mask = grasps_mask.to(self.device)
         self.grasp_poses = se3.pose_to_matrix(self.grasps[..., :3], self.grasps[..., 3:7])  # (B, M, 4, 4)
@@ -353,6 +350,9 @@ class GraspClutterEnv(BaseEnv):
             extra["point_cloud"], extra["point_cloud_mask"] = self.capture_point_cloud()
         else:
             extra["point_cloud"], extra["point_cloud_mask"] = self.mesh_point_cloud.clone(), self.mesh_point_cloud_mask.clone()
+        if self.obs_mode == "state":
+            # ManiSkill flattens "state" observations into one vector per env.
+            extra = {key: value.reshape(self.num_envs, -1) for key, value in extra.items()}
         return extra
 
     def capture_point_cloud(self) -> tuple[torch.Tensor, torch.Tensor]:

@@ -287,7 +287,9 @@ def _object_candidates(
     room = np.clip((MAX_OPENING - width) / ROOM_SATURATION, 0.0, 1.0)
     score = ALIGNMENT_WEIGHT * alignment + (1 - ALIGNMENT_WEIGHT) * room
     # Centre the TCP between the contacts.
-    tcp = tcp + np.where(ok, (t_right - t_left) / 2, 0.0)[:, None] * y
+    with np.errstate(invalid="ignore"):
+        shift = np.where(ok, (t_right - t_left) / 2, 0.0)
+    tcp = tcp + shift[:, None] * y
     lo = WORKSPACE_CENTER - WORKSPACE_HALF_SIZE - workspace_margin
     hi = WORKSPACE_CENTER + WORKSPACE_HALF_SIZE + workspace_margin
     ok &= (score > MIN_SCORE) & ((tcp >= lo) & (tcp <= hi)).all(1)

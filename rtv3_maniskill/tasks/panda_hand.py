@@ -19,7 +19,7 @@ Geometry in the TCP frame (all from the URDF's collision elements, measured with
 * palm: convex hull of ``meshes/collision/hand.stl`` (already convex: hull volume equals
   mesh volume), extents x ±0.0316, y -0.1040..0.1004, z -0.1293..-0.0374 m (the palm's
   face is 3.74 cm behind the TCP);
-* wrist flange: convex hull of ``link7.stl.convex.stl`` (rigidly attached to the hand:
+* wrist flange: convex hull of ``link7.stl`` (rigidly attached to the hand:
   ``panda_joint8`` z 0.107, ``panda_hand_joint`` yaw -pi/4), z -0.158..-0.104 m;
 * each finger: convex hull of its four URDF boxes (screw mount, sledge, diagonal, rubber
   tip); the finger frame sits at z = 0.0584 - 0.1034 = -0.045 m, y = ±q. The rubber tip
@@ -145,10 +145,10 @@ def hand_parts(approach_sweep: float = 0.0, include_wrist: bool = True) -> tuple
     palm = trimesh.load(meshes / "hand.stl", force="mesh")
     parts = [_hull_part("palm", "hand", _transform_points(tcp_from_hand, palm.vertices), approach_sweep, True)]
     if include_wrist:
+        # inverse of panda_joint8 (z 0.107) followed by panda_hand_joint (yaw -pi/4)
         hand_from_link7 = trimesh.transformations.rotation_matrix(LINK7_IN_HAND_YAW, [0, 0, 1])
-        hand_from_link7[2, 3] = 0.0
         hand_from_link7 = hand_from_link7 @ trimesh.transformations.translation_matrix([0, 0, LINK7_IN_HAND_Z])
-        link7 = trimesh.load(meshes / "link7.stl.convex.stl", force="mesh")
+        link7 = trimesh.load(meshes / "link7.stl", force="mesh")
         verts = _transform_points(tcp_from_hand @ hand_from_link7, link7.vertices)
         parts.append(_hull_part("wrist", "hand", verts, approach_sweep, True))
     left = np.concatenate([_box_vertices(*box) for box in LEFT_FINGER_BOXES])
