@@ -262,9 +262,12 @@ def test_grasps_are_collision_free_under_a_dense_independent_check(clutter):
 def test_dense_check_detects_a_colliding_hand(clutter):
     """The independent check used above is able to fail."""
     scene, g = clutter
+    for i in range(0, len(g), 5):
+        # Jaw closed on the object: the pads would sit inside it (the TCP is between contacts).
+        assert any("finger in object" in hit for hit in _hand_intrusions(scene, g.poses[i], 0.0))
     pose = g.poses[0].copy()
-    pose[:3, 3] += 0.03 * pose[:3, 2]  # push the hand 3 cm further along the approach
-    assert _hand_intrusions(scene, pose, 0.08)
+    pose[:3, 3] += 0.08 * pose[:3, 2]  # palm (3.7..12.9 cm behind the TCP) now spans the old TCP
+    assert any("panda_hand" in hit for hit in _hand_intrusions(scene, pose, 0.08))
 
 
 def test_non_maximum_suppression_keeps_candidates_diverse(clutter):
@@ -307,6 +310,26 @@ def test_pregrasp_is_five_cm_back_along_the_approach(clutter):
     np.testing.assert_allclose(pre, g.poses @ back, atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(pre[:, :3, 3] - g.poses[:, :3, 3], axis=1), 0.05, atol=1e-12)
     np.testing.assert_allclose(g.pregrasp_poses(0.1)[:, :3, :3], g.poses[:, :3, :3])
+
+
+def test_multi_part_object_contacts_lie_on_the_union_surface():
+    """A hammer-like object from two overlapping boxes: contacts on the outer surface of the
+    union, hand free of both parts."""
+    handle = CollisionShape("box", (0.07, 0.012, 0.012))
+    head = CollisionShape("box", (0.015, 0.035, 0.015), local_pose=_pose(0.06, 0.0, 0.003))
+    obj = ObjectGeometry("hammer", [handle, head], trimesh.util.concatenate([handle.to_trimesh(), head.to_trimesh()]))
+    scene = SceneGeometry([obj], _pose(-0.05, 0.0, 0.012, 0.5)[None])
+    g = sample_grasps(scene, np.random.default_rng(3), num_surface_samples=192)
+    assert len(g) >= 3
+    parts = [eq for _, eq, *_ in _object_hulls(scene)]
+    for pose, width in zip(g.poses, g.widths):
+        for side in (1.0, -1.0):
+            contact = pose[:3, 3] + side * width / 2 * pose[:3, 1]
+            # On the union's surface: on the boundary of one part, inside none.
+            signed = [(eq[:, :3] @ contact + eq[:, 3]).max() for eq in parts]
+            assert abs(min(signed)) < 1e-6
+        opening = min(width + 2 * CLEARANCE, MAX_OPENING)
+        assert not _hand_intrusions(scene, pose, opening)
 
 
 def test_plate_wider_than_the_gripper_has_no_grasp():

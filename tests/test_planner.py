@@ -6,6 +6,7 @@ import coal
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from rtv3_maniskill.datasets.panda_model import (
     REST_QPOS,
@@ -29,8 +30,9 @@ def tcp_pose(position, rotation=TOP_DOWN) -> np.ndarray:
 
 
 def rotation_error(a: np.ndarray, b: np.ndarray) -> float:
-    cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2
-    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+    """Angle (rad) of the relative rotation of two poses, accurate for small angles."""
+    rel = np.asarray(a, dtype=np.float64)[:3, :3].T @ np.asarray(b, dtype=np.float64)[:3, :3]
+    return float(Rotation.from_matrix(rel).magnitude())
 
 
 def box_object(name: str, half_size, position) -> tuple[ObjectGeometry, np.ndarray]:

@@ -9,7 +9,9 @@ import sys
 # name -> (module under rtv3_maniskill.cli, one-line help). Modules load lazily so that
 # `rtv3 --help` stays fast.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("demo", "the main job: shared-control demo in a clutter scene (video + plots)"),
     "scene": ("scene", "render a random clutter scene; save an image with its point cloud and grasp candidates"),
+    "generate": ("generate", "expert demonstrations from the motion planner -> LeRobot v3 dataset (resumable)"),
     "benchmark-env": ("benchmark_env", "time GraspClutter-v1: steps/s, reset incl. grasp sampling, point-cloud capture"),
 }
 

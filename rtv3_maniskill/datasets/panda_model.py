@@ -22,6 +22,7 @@ simulates. Self-collision pairs follow ManiSkill's ``panda_v2.srdf``.
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -347,7 +348,8 @@ class PandaCollisionWorld:
         for k, kind in enumerate(self._pair_kinds):
             self.geometry_data.collisionRequests[k].security_margin = float(getattr(margins, kind))
 
-    def _set_ignored(self, ignore_objects) -> None:
+    def set_ignored(self, ignore_objects: Iterable[int]) -> None:
+        """Deactivate the robot pairs of the objects in ``ignore_objects`` (re-activate the others)."""
         ignore = frozenset(int(i) for i in ignore_objects)
         if ignore == self._ignored:
             return
@@ -362,7 +364,7 @@ class PandaCollisionWorld:
                     self.geometry_data.activateCollisionPair(p)
         self._ignored = ignore
 
-    def is_collision_free(self, q, ignore_objects=()) -> bool:
+    def is_collision_free(self, q, ignore_objects: Iterable[int] = ()) -> bool:
         """Whether ``q (7,)`` is within limits and free of collisions (margins included).
 
         ``ignore_objects``: object indices (``TABLE_OBJECT_INDEX`` for the table) whose
@@ -371,7 +373,7 @@ class PandaCollisionWorld:
         q = as_joint_vector(q)
         if not self.kin.within_limits(q, tol=1e-6):
             return False
-        self._set_ignored(ignore_objects)
+        self.set_ignored(ignore_objects)
         return not pin.computeCollisions(self.model, self.data, self._broadphase, q, True)
 
     def check_fast(self, q: np.ndarray) -> bool:
@@ -381,10 +383,10 @@ class PandaCollisionWorld:
         """
         return not pin.computeCollisions(self.model, self.data, self._broadphase, q, True)
 
-    def colliding_pairs(self, q, ignore_objects=()) -> list[tuple[str, str]]:
+    def colliding_pairs(self, q, ignore_objects: Iterable[int] = ()) -> list[tuple[str, str]]:
         """Names of all geometry pairs in collision at ``q (7,)`` (diagnostics)."""
         q = as_joint_vector(q)
-        self._set_ignored(ignore_objects)
+        self.set_ignored(ignore_objects)
         pin.computeCollisions(self.model, self.data, self.geometry, self.geometry_data, q, False)
         out = []
         for k, cp in enumerate(self.geometry.collisionPairs):
@@ -392,13 +394,13 @@ class PandaCollisionWorld:
                 out.append((self.geometry.geometryObjects[cp.first].name, self.geometry.geometryObjects[cp.second].name))
         return out
 
-    def min_distance(self, q, ignore_objects=()) -> float:
+    def min_distance(self, q, ignore_objects: Iterable[int] = ()) -> float:
         """Smallest distance (m, margins not subtracted) between the robot and any obstacle.
 
         Negative or 0 when in contact. Self-collision pairs are not included.
         """
         q = as_joint_vector(q)
-        self._set_ignored(ignore_objects)
+        self.set_ignored(ignore_objects)
         pin.updateGeometryPlacements(self.model, self.data, self.geometry, self.geometry_data, q)
         best = np.inf
         for obj_idx, pair_ids in self.pairs_by_object.items():

@@ -243,6 +243,16 @@ class PandaPlanner:
             self.world.set_margins(margins)
             self._active_margins = margins
 
+    def _clip_start(self, q_start: np.ndarray) -> np.ndarray:
+        """Clip a start ``(7,)`` that exceeds the joint limits by at most 1 mrad (simulator read-outs).
+
+        Larger violations are left alone and reported as ``start_in_collision``.
+        """
+        lower, upper = self.kin.lower, self.kin.upper
+        if np.all(q_start >= lower - 1e-3) and np.all(q_start <= upper + 1e-3):
+            return np.clip(q_start, lower, upper)
+        return q_start
+
     def forward_kinematics(self, q) -> np.ndarray:
         """``(4, 4)`` world pose of the TCP (``panda_hand_tcp``) at ``q (7,)``."""
         return self.kin.forward_kinematics(q)
@@ -294,14 +304,16 @@ class PandaPlanner:
 
         The first attempt starts from ``q_seed (7,)`` (default: ManiSkill's rest pose),
         then random configurations (``numpy`` generator seeded by ``seed``). Solutions
-        are within the joint limits, collision-free when ``check_collision`` and sorted
-        by joint distance to ``q_seed``.
+        are within the joint limits, collision-free under ``config.margins`` when
+        ``check_collision`` (pass the grasped object in ``ignore_objects`` for grasp
+        poses) and sorted by joint distance to ``q_seed``.
         """
         target = as_pose_matrix(target, "target")
         q_seed = REST_QPOS.copy() if q_seed is None else as_joint_vector(q_seed, "q_seed")
         if num_solutions < 1:
             raise ValueError(f"num_solutions must be >= 1, got {num_solutions}")
         cfg = self.config
+        self._use_margins(cfg.margins)
         rng = np.random.default_rng(seed)
         ignore = list(ignore_objects)
         out = IKSolutions()
@@ -346,11 +358,14 @@ class PandaPlanner:
         """Collision-free trajectory from ``q_start (7,)`` to the TCP pose ``target (4, 4)``.
 
         IK gives up to ``config.num_goal_solutions`` goal configurations; RRTConnect
-        plans to any of them within ``timeout`` s; the path is shortcut, splined and
-        time-parameterized (TOPP-RA) and resampled at ``config.control_dt``.
+        plans to any of them (OMPL ``GoalStates``) within what is left of ``timeout``
+        s after IK; the path is shortcut, splined and time-parameterized (TOPP-RA) and
+        resampled at ``config.control_dt``. Collisions use ``config.margins``;
+        ``ignore_objects`` (object indices, -1 = table) are not checked. Reproducible
+        for a given ``seed`` (OMPL and numpy are seeded from it).
         """
         t0 = time.perf_counter()
-        q_start = as_joint_vector(q_start, "q_start")
+        q_start = self._clip_start(as_joint_vector(q_start, "q_start"))
         target = as_pose_matrix(target, "target")
         if timeout <= 0:
             raise ValueError(f"timeout must be > 0 s, got {timeout}")
@@ -401,7 +416,7 @@ class PandaPlanner:
         space.setBounds(bounds)
         ss = og.SimpleSetup(space)
         world = self.world
-        world._set_ignored(ignore)
+        world.set_ignored(ignore)
         buf = np.zeros(DOF)
 
         def valid(state) -> bool:
@@ -428,7 +443,7 @@ class PandaPlanner:
         status = ss.solve(float(time_left))
         name = str(status)
         if not ss.haveExactSolutionPath():
-            return None, "timeout" if "timeout" in name.lower() else name
+            return None, "timeout" if status.getStatus() == ob.PlannerStatus.TIMEOUT else name
         ss.simplifySolution(self.config.simplify_time)
         path = ss.getSolutionPath()
         out = np.array([[path.getState(k)[i] for i in range(DOF)] for k in range(path.getStateCount())])
@@ -500,7 +515,7 @@ class PandaPlanner:
         are skipped, e.g. the object about to be grasped.
         """
         t0 = time.perf_counter()
-        q_start = as_joint_vector(q_start, "q_start")
+        q_start = self._clip_start(as_joint_vector(q_start, "q_start"))
         target = as_pose_matrix(target, "target")
         cfg = self.config
         speed = cfg.approach_speed if speed is None else float(speed)

@@ -356,9 +356,18 @@ class GraspClutterEnv(BaseEnv):
         return extra
 
     def capture_point_cloud(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Render the depth camera and process its cloud: ``(B, N, 6)``, ``(B, N)``."""
+        """Render the depth camera and process its cloud: ``(B, N, 6)``, ``(B, N)``.
+
+        Works in every observation mode (e.g. to grab a static scene cloud once per
+        scene while stepping in ``state_dict`` mode).
+        """
+        camera = self.scene.sensors["depth_camera"]
+        self.scene.update_render(update_sensors=True, update_human_render_cameras=False)
+        camera.capture()
+        images = camera.get_obs(rgb=True, depth=False, position=True, segmentation=True)
         raw = sensor_data_to_pointcloud(
-            dict(sensor_param=self.get_sensor_params(), sensor_data=self._get_obs_sensor_data()), self._sensors
+            dict(sensor_param={"depth_camera": camera.get_params()}, sensor_data={"depth_camera": images}),
+            {"depth_camera": camera},
         )["pointcloud"]
         xyz = raw["xyzw"][..., :3]
         rgb = raw["rgb"].float() / 255.0

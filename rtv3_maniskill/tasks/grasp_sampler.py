@@ -306,7 +306,7 @@ def sample_grasps(
     scene: SceneGeometry,
     rng: np.random.Generator,
     max_grasps: int = 64,
-    num_surface_samples: int = 96,
+    num_surface_samples: int = 192,
     finger_clearance: float = 0.01,
     approach_distance: float = PREGRASP_DISTANCE,
     max_approach_z: float = 0.5,

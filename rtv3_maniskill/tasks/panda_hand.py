@@ -99,7 +99,7 @@ def _transform_points(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ transform[:3, :3].T + transform[:3, 3]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class HandPart:
     """One convex part. ``vertices (V, 3)`` / ``faces (F, 3)`` in the TCP frame at zero
     opening; finger parts move by ``±opening / 2`` along TCP y (``kind``)."""

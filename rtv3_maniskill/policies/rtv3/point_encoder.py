@@ -35,18 +35,31 @@ def _spread_bits(x: torch.Tensor) -> torch.Tensor:
     return x
 
 
+_SPREAD_TABLES: dict[torch.device, torch.Tensor] = {}
+
+
+def _spread_table(device: torch.device) -> torch.Tensor:
+    """Lookup table ``(2^16,)`` of :func:`_spread_bits` (built once per device; 512 KiB)."""
+    table = _SPREAD_TABLES.get(device)
+    if table is None:
+        table = _spread_bits(torch.arange(1 << _AXIS_BITS, dtype=torch.long, device=device))
+        _SPREAD_TABLES[device] = table
+    return table
+
+
 def morton_code(grid: torch.Tensor, order: str = "z") -> torch.Tensor:
     """Z-order code of integer voxel coordinates ``(L, 3)`` (each in ``[0, 2^16)``) -> ``(L,)`` int64.
 
     ``order="z-trans"`` swaps the x and y axes (PTv3's transposed z-order).
     """
     if order == "z":
-        x, y, z = grid.unbind(-1)
+        axes = (0, 1, 2)
     elif order == "z-trans":
-        y, x, z = grid.unbind(-1)
+        axes = (1, 0, 2)
     else:
         raise ValueError(f"unknown serialization order {order!r}; use 'z' or 'z-trans'")
-    return _spread_bits(x) | (_spread_bits(y) << 1) | (_spread_bits(z) << 2)
+    spread = _spread_table(grid.device)[grid]  # (L, 3)
+    return spread[:, axes[0]] | (spread[:, axes[1]] << 1) | (spread[:, axes[2]] << 2)
 
 
 @dataclass
@@ -104,15 +117,21 @@ class PatchAttention(nn.Module):
         if length == 0:
             return feat
         p, h = self.patch_size, self.heads
-        dest, total = _patch_layout(batch, batch_size, p)
-        qkv = feat.new_zeros(total, 3 * dim)
-        qkv[dest] = self.qkv(feat)
-        valid = torch.zeros(total, dtype=torch.bool, device=feat.device)
-        valid[dest] = True
+        qkv = self.qkv(feat)
+        if batch_size == 1:  # contiguous layout: pad only at the end (fast path for inference)
+            total = (length + p - 1) // p * p
+            qkv = F.pad(qkv, (0, 0, 0, total - length))
+            valid = torch.arange(total, device=feat.device) < length
+            dest = None
+        else:
+            dest, total = _patch_layout(batch, batch_size, p)
+            qkv = qkv.new_zeros(total, 3 * dim).index_copy_(0, dest, qkv)
+            valid = torch.zeros(total, dtype=torch.bool, device=feat.device).index_fill_(0, dest, True)
         qkv = qkv.view(total // p, p, 3, h, dim // h).permute(2, 0, 3, 1, 4)  # (3, patches, heads, P, d)
         attn_mask = valid.view(total // p, 1, 1, p)  # every patch holds >= 1 real point
         out = F.scaled_dot_product_attention(qkv[0], qkv[1], qkv[2], attn_mask=attn_mask)
-        out = out.transpose(1, 2).reshape(total, dim)[dest]
+        out = out.transpose(1, 2).reshape(total, dim)
+        out = out[:length] if dest is None else out.index_select(0, dest)
         return self.proj(out)
 
 
@@ -201,7 +220,11 @@ class PointTransformerEncoder(nn.Module):
         origin = torch.where(torch.isfinite(origin) & (origin < big), origin, torch.zeros_like(origin))
         grid = torch.floor((xyz - origin[:, None]) / self.grid_size).long().clamp(0, (1 << _AXIS_BITS) - 1)
         batch = torch.arange(xyz.shape[0], device=xyz.device)[:, None].expand(mask.shape)
-        return FlatPoints(feat[mask], xyz[mask], grid[mask], batch[mask], xyz.shape[0])
+        if bool(mask.all()):
+            flat = lambda t: t.reshape(-1, *t.shape[2:])  # noqa: E731
+        else:
+            flat = lambda t: t[mask]  # noqa: E731
+        return FlatPoints(flat(feat), flat(xyz), flat(grid), flat(batch), xyz.shape[0])
 
     def forward(self, xyz: torch.Tensor, feat: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Encode padded point clouds.
@@ -223,6 +246,8 @@ class PointTransformerEncoder(nn.Module):
 
     @staticmethod
     def _pad(pts: FlatPoints) -> tuple[torch.Tensor, torch.Tensor]:
+        if pts.batch_size == 1:
+            return pts.feat[None], torch.ones(1, pts.feat.shape[0], dtype=torch.bool, device=pts.feat.device)
         counts = torch.bincount(pts.batch, minlength=pts.batch_size)
         width = int(counts.max()) if pts.feat.shape[0] else 0
         start = torch.cumsum(counts, 0) - counts

@@ -1,0 +1,208 @@
+"""Expert demonstrations: plan to a grasp candidate's pre-grasp, execute in the simulator, record.
+
+For each grasp candidate of a scene (paper, "Simulation Setup and Data Collection"):
+
+1. a random initial TCP pose in the workspace, oriented as a person would start (gripper
+   pointing down within 45 degrees, random yaw), reached by collision-free IK;
+2. an OMPL/Pinocchio plan to the target's pre-grasp, then the straight 5 cm approach to
+   the grasp (``rtv3_maniskill.datasets.planner``);
+3. execution in ``GraspClutter-v1`` at 20 Hz with ``pd_joint_pos_vel`` control, then
+   ``HOLD_STEPS`` steps holding the final pose (the model learns to stop, NOTES.md);
+4. what the simulator did is recorded: per step the state (TCP pose, body twist, joint
+   state) and, as the action, the body twist realised over the step.
+
+Episodes are discarded, with the reason counted, on planning failure, a robot contact
+while travelling to the pre-grasp, disturbing the scene during the approach, a joint
+limit, or missing the pre-grasp.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from rtv3_maniskill import se3
+from rtv3_maniskill.features import DT
+from rtv3_maniskill.tasks.grasp_clutter import PREGRASP_DISTANCE
+from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF_SIZE
+
+HOLD_STEPS = 13
+FAILURE_REASONS = ("planning_failed", "collision", "disturbed_scene", "joint_limit", "missed_pregrasp", "no_start_pose")
+PREGRASP_POSITION_TOLERANCE = 0.01
+"""m: the executed motion must pass within this distance of the pre-grasp."""
+
+
+@dataclass
+class Episode:
+    """One recorded demonstration (S steps, all float32 arrays, world frame)."""
+
+    state: np.ndarray
+    """``(S, 27)`` see ``rtv3_maniskill.features.STATE``."""
+    action: np.ndarray
+    """``(S, 6)`` body twist realised over each step."""
+    point_cloud: np.ndarray
+    """``(N, 6)`` static scene cloud (xyz + rgb)."""
+    point_cloud_mask: np.ndarray
+    grasps: np.ndarray
+    """``(M, 9)`` padded grasp set."""
+    grasps_mask: np.ndarray
+    target_grasp_index: int
+    scene_seed: int
+    object_names: list[str]
+    target_object: int
+    task: str
+    pregrasp_step: int
+    """Index of the step at which the pre-grasp is reached (the approach starts)."""
+    info: dict = field(default_factory=dict)
+
+
+def random_start_pose(rng: np.random.Generator) -> np.ndarray:
+    """A TCP pose ``(4, 4)`` in the upper part of the workspace, pointing down within 45 deg."""
+    position = WORKSPACE_CENTER + np.array(
+        [rng.uniform(-1, 1) * WORKSPACE_HALF_SIZE, rng.uniform(-1, 1) * WORKSPACE_HALF_SIZE, rng.uniform(0.05, 0.15)]
+    )
+    tilt_axis = rng.normal(size=2)
+    tilt_axis = np.array([*tilt_axis / np.linalg.norm(tilt_axis), 0.0])
+    tilt = rng.uniform(0, np.pi / 4)
+    yaw = rng.uniform(-np.pi, np.pi)
+    down = np.diag([1.0, -1.0, -1.0])  # TCP z (approach) pointing down
+    rot = (
+        se3.so3_exp(torch.as_tensor(tilt_axis * tilt)).numpy()
+        @ down
+        @ se3.so3_exp(torch.tensor([0.0, 0.0, yaw], dtype=torch.float64)).numpy()
+    )
+    pose = np.eye(4)
+    pose[:3, :3] = rot
+    pose[:3, 3] = position
+    return pose
+
+
+def describe_grasp(object_name: str, grasp_pose: np.ndarray) -> str:
+    """Task string, e.g. ``"grasp the mug from the top"`` (approach direction in the world)."""
+    approach = grasp_pose[:3, 2]
+    if approach[2] < -0.7:
+        side = "the top"
+    else:
+        # The robot stands at -x: +x approach comes from the robot's side ("front").
+        horizontal = approach[:2] / max(np.linalg.norm(approach[:2]), 1e-9)
+        sides = {"the front": np.array([1.0, 0.0]), "the back": np.array([-1.0, 0.0]), "the right": np.array([0.0, 1.0]), "the left": np.array([0.0, -1.0])}
+        side = max(sides, key=lambda k: float(sides[k] @ horizontal))
+    return f"grasp the {object_name} from {side}"
+
+
+def _state_vector(obs: dict) -> np.ndarray:
+    extra = obs["extra"]
+    qpos = obs["agent"]["qpos"][0, :7]
+    qvel = obs["agent"]["qvel"][0, :7]
+    return torch.cat([extra["tcp_pose"][0], extra["tcp_twist"][0], qpos, qvel]).cpu().numpy().astype(np.float32)
+
+
+class DemonstrationRecorder:
+    """Plans and executes demonstrations in one ``GraspClutter-v1`` env (``pd_joint_pos_vel``).
+
+    ``context_obs_mode`` decides where the static point cloud comes from: ``"pointcloud"``
+    renders the depth camera once per scene; ``"state_dict"`` samples the meshes.
+    """
+
+    def __init__(self, env, planner_factory, plan_timeout: float = 3.0):
+        self.env = env
+        self.base = env.unwrapped
+        self.planner_factory = planner_factory
+        self.plan_timeout = plan_timeout
+        self.planner = None
+        self.scene_seed: int | None = None
+        self._context: dict[str, np.ndarray] = {}
+
+    def load_scene(self, scene_seed: int) -> int:
+        """Reset to the scene of ``scene_seed``; returns its number of grasp candidates."""
+        obs, _ = self.env.reset(seed=scene_seed, options=dict(reconfigure=True))
+        self.scene_seed = scene_seed
+        extra = obs["extra"]
+        if self.base.obs_mode == "pointcloud":
+            cloud, mask = extra["point_cloud"][0], extra["point_cloud_mask"][0]
+        else:
+            cloud, mask = self.base.mesh_point_cloud[0], self.base.mesh_point_cloud_mask[0]
+        self._context = dict(
+            point_cloud=cloud.cpu().numpy().astype(np.float32),
+            point_cloud_mask=mask.cpu().numpy().astype(np.float32),
+            grasps=extra["grasps"][0].cpu().numpy().astype(np.float32),
+            grasps_mask=extra["grasps_mask"][0].cpu().numpy().astype(np.float32),
+        )
+        self.planner = self.planner_factory(self.base.layouts[0])
+        return int(self._context["grasps_mask"].sum())
+
+    def record(self, grasp_index: int, seed: int) -> Episode | str:
+        """Demonstration toward grasp ``grasp_index`` of the loaded scene, or a failure reason."""
+        rng = np.random.default_rng(seed)
+        grasp_set = self.base.grasp_sets[0]
+        grasp = grasp_set.poses[grasp_index]
+        pregrasp = grasp_set.pregrasp_poses(PREGRASP_DISTANCE)[grasp_index]
+        target_object = int(grasp_set.object_ids[grasp_index])
+        q_start = None
+        for attempt in range(10):
+            q_start = self.planner.solve_ik(random_start_pose(rng), seed=seed * 31 + attempt)
+            if q_start is not None:
+                break
+        if q_start is None:
+            return "no_start_pose"
+        transit = self.planner.plan_to_pose(q_start, pregrasp, timeout=self.plan_timeout, seed=seed)
+        if not transit.success:
+            return "planning_failed"
+        approach = self.planner.plan_straight_line(transit.trajectory.q[-1], grasp, ignore_objects={target_object})
+        if not approach.success:
+            return "planning_failed"
+        return self._execute(transit.trajectory, approach.trajectory, grasp_index, target_object, pregrasp, seed)
+
+    def _execute(self, transit, approach, grasp_index, target_object, pregrasp, seed) -> Episode | str:
+        q_plan = np.concatenate([transit.q, approach.q[1:]])
+        qd_plan = np.concatenate([transit.qd, approach.qd[1:]])
+        q_plan = np.concatenate([q_plan, np.repeat(q_plan[-1:], HOLD_STEPS, 0)])
+        qd_plan = np.concatenate([qd_plan, np.zeros((HOLD_STEPS, 7))])
+        pregrasp_step = len(transit.q) - 1
+        obs, _ = self.env.reset(
+            options=dict(reconfigure=False, init_qpos=transit.q[0], target_grasp_index=grasp_index)
+        )
+        object_poses_start = [a.pose.raw_pose.clone() for a in self.base.objects[0]]
+        limits = self.base.agent.robot.get_qlimits()[0, :7].cpu().numpy()
+        states, actions = [_state_vector(obs)], []
+        closest_to_pregrasp = np.inf
+        pregrasp_t = torch.as_tensor(pregrasp, dtype=torch.float32)
+        for k in range(1, len(q_plan)):
+            action = np.concatenate([q_plan[k], qd_plan[k], [0.04]]).astype(np.float32)
+            obs, _, _, _, info = self.env.step(torch.as_tensor(action)[None])
+            states.append(_state_vector(obs))
+            actions.append(states[-1][7:13])  # realised body twist of this step
+            if k <= pregrasp_step and bool(info["collision"]):
+                return "collision"
+            qpos = obs["agent"]["qpos"][0, :7].cpu().numpy()
+            if np.any(qpos < limits[:, 0] + 1e-3) or np.any(qpos > limits[:, 1] - 1e-3):
+                return "joint_limit"
+            tcp = self.base.tcp_pose_matrix[0]
+            closest_to_pregrasp = min(closest_to_pregrasp, float((tcp[:3, 3] - pregrasp_t[:3, 3]).norm()))
+        for j, (actor, start) in enumerate(zip(self.base.objects[0], object_poses_start)):
+            moved = float((actor.pose.raw_pose[0, :3] - start[0, :3]).norm())
+            if moved > (0.02 if j == target_object else 0.005):
+                return "disturbed_scene"
+        if closest_to_pregrasp > PREGRASP_POSITION_TOLERANCE:
+            return "missed_pregrasp"
+        # The last state has no next step: its action is the zero twist of holding still.
+        actions.append(np.zeros(6, dtype=np.float32))
+        layout = self.base.layouts[0]
+        names = [o.name for o in layout.objects]
+        return Episode(
+            state=np.stack(states),
+            action=np.stack(actions).astype(np.float32),
+            target_grasp_index=grasp_index,
+            scene_seed=int(self.scene_seed),
+            object_names=names,
+            target_object=target_object,
+            task=describe_grasp(names[target_object], self.base.grasp_sets[0].poses[grasp_index]),
+            pregrasp_step=pregrasp_step,
+            info=dict(plan_seed=seed, closest_to_pregrasp=closest_to_pregrasp),
+            **self._context,
+        )
+
+
+__all__ = ["DemonstrationRecorder", "Episode", "FAILURE_REASONS", "HOLD_STEPS", "describe_grasp", "random_start_pose", "DT"]
