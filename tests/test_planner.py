@@ -15,7 +15,7 @@ from rtv3_maniskill.datasets.panda_model import (
     PandaKinematics,
     panda_asset_dir,
 )
-from rtv3_maniskill.datasets.planner import FAILURE_REASONS, PandaPlanner, PlannerConfig
+from rtv3_maniskill.datasets.planner import FAILURE_REASONS, PandaPlanner
 from rtv3_maniskill.tasks.scene_geometry import ROBOT_BASE_POSITION, CollisionShape, ObjectGeometry, SceneGeometry
 
 TOP_DOWN = np.diag([1.0, -1.0, -1.0])
@@ -268,3 +268,11 @@ def test_straight_line_approach(kinematics):
     # Reported joint velocities agree with the motion.
     fd = np.gradient(traj.q, planner.config.control_dt, axis=0)
     assert np.abs(fd - traj.qd).max() < 0.01
+
+    # A demonstration = free-space motion to the pre-grasp, then the approach.
+    free = planner.plan_to_pose(REST_QPOS, pregrasp, seed=0)
+    assert free.success, free.message
+    demo = free.trajectory.concatenate(planner.plan_straight_line(free.goal_q, grasp, ignore_objects={0}).trajectory)
+    assert np.allclose(np.diff(demo.t), planner.config.control_dt)
+    assert np.abs(np.diff(demo.q, axis=0)).max() < 0.1  # no jump at the junction
+    assert np.linalg.norm(kinematics.forward_kinematics(demo.q[-1])[:3, 3] - grasp[:3, 3]) < 1e-3

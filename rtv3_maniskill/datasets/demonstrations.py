@@ -26,6 +26,7 @@ import torch
 from rtv3_maniskill import se3
 from rtv3_maniskill.features import DT
 from rtv3_maniskill.tasks.grasp_clutter import PREGRASP_DISTANCE
+from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF_SIZE
 
 HOLD_STEPS = 13
@@ -137,8 +138,6 @@ class DemonstrationRecorder:
         """Demonstration toward grasp ``grasp_index`` of the loaded scene, or a failure reason."""
         rng = np.random.default_rng(seed)
         grasp_set = self.base.grasp_sets[0]
-        grasp = grasp_set.poses[grasp_index]
-        pregrasp = grasp_set.pregrasp_poses(PREGRASP_DISTANCE)[grasp_index]
         target_object = int(grasp_set.object_ids[grasp_index])
         q_start = None
         for attempt in range(10):
@@ -147,12 +146,17 @@ class DemonstrationRecorder:
                 break
         if q_start is None:
             return "no_start_pose"
+        # Parallel-jaw symmetry: aim for the twin closer to the start orientation (NOTES.md).
+        grasp = canonicalize_symmetric(grasp_set.poses[grasp_index : grasp_index + 1], self.planner.forward_kinematics(q_start))[0]
+        pregrasp = grasp.copy()
+        pregrasp[:3, 3] -= PREGRASP_DISTANCE * grasp[:3, 2]
         transit = self.planner.plan_to_pose(q_start, pregrasp, timeout=self.plan_timeout, seed=seed)
         if not transit.success:
             return "planning_failed"
         approach = self.planner.plan_straight_line(transit.trajectory.q[-1], grasp, ignore_objects={target_object})
         if not approach.success:
             return "planning_failed"
+        self._grasp = grasp
         return self._execute(transit.trajectory, approach.trajectory, grasp_index, target_object, pregrasp, seed)
 
     def _execute(self, transit, approach, grasp_index, target_object, pregrasp, seed) -> Episode | str:
@@ -198,7 +202,7 @@ class DemonstrationRecorder:
             scene_seed=int(self.scene_seed),
             object_names=names,
             target_object=target_object,
-            task=describe_grasp(names[target_object], self.base.grasp_sets[0].poses[grasp_index]),
+            task=describe_grasp(names[target_object], self._grasp),
             pregrasp_step=pregrasp_step,
             info=dict(plan_seed=seed, closest_to_pregrasp=closest_to_pregrasp),
             **self._context,

@@ -92,6 +92,21 @@ class JointTrajectory:
     def __len__(self) -> int:
         return self.q.shape[0]
 
+    def concatenate(self, other: JointTrajectory) -> JointTrajectory:
+        """This trajectory followed by ``other``, which must start where this one ends.
+
+        ``other``'s first sample (a duplicate of this one's last) is dropped and its
+        times are shifted so the result stays on the same ``dt`` grid.
+        """
+        if np.abs(other.q[0] - self.q[-1]).max() > 1e-3:
+            raise ValueError("other trajectory does not start at this trajectory's last configuration")
+        dt = float(self.t[1] - self.t[0]) if len(self) > 1 else float(other.t[1] - other.t[0])
+        return JointTrajectory(
+            q=np.concatenate([self.q, other.q[1:]]),
+            qd=np.concatenate([self.qd, other.qd[1:]]),
+            t=np.concatenate([self.t, self.t[-1] + other.t[1:] - other.t[0]]),
+        )
+
 
 @dataclass
 class PlanResult:
