@@ -275,12 +275,6 @@ class RTV3Config(PreTrainedConfig):
     def reward_delta_indices(self) -> None:
         return None
 
-    @property
-    def uses_packed_context(self) -> bool:
-        """True when the scene context arrives only as ``observation.environment_state``."""
-        keys = set(self.input_features or {})
-        return ft.POINT_CLOUD not in keys and ENV_STATE in keys
-
     def default_input_features(self) -> dict[str, PolicyFeature]:
         """The ``features.py`` schema with separate context keys."""
         return {

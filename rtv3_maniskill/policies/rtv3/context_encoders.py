@@ -10,9 +10,46 @@ motion. Each memory always contains one learned "null" token, so a sample with n
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from rtv3_maniskill.policies.rtv3.point_encoder import PointTransformerEncoder
+
+
+class QueryDecoderLayer(nn.Module):
+    """Transformer decoder layer (post-norm, as ``nn.TransformerDecoderLayer``) for a single query token.
+
+    With one query, self-attention over the query sequence reduces exactly to ``W_o (W_v x)``;
+    writing it out saves most of the per-call overhead at inference.
+    """
+
+    def __init__(self, dim: int, heads: int, feedforward: int, dropout: float):
+        super().__init__()
+        self.heads = heads
+        self.self_value = nn.Linear(dim, dim)
+        self.self_out = nn.Linear(dim, dim)
+        self.cross_query = nn.Linear(dim, dim)
+        self.cross_key_value = nn.Linear(dim, 2 * dim)
+        self.cross_out = nn.Linear(dim, dim)
+        self.feedforward = nn.Sequential(
+            nn.Linear(dim, feedforward), nn.ReLU(), nn.Dropout(dropout), nn.Linear(feedforward, dim)
+        )
+        self.norm1, self.norm2, self.norm3 = nn.LayerNorm(dim), nn.LayerNorm(dim), nn.LayerNorm(dim)
+        self.dropout = nn.Dropout(dropout)
+
+    def forward(self, query: torch.Tensor, memory: torch.Tensor, attend: torch.Tensor) -> torch.Tensor:
+        """``query (B, C)``, ``memory (B, L, C)``, ``attend (B, L)`` bool (True = real) -> ``(B, C)``."""
+        b, length, dim = memory.shape
+        h = self.heads
+        x = self.norm1(query + self.dropout(self.self_out(self.self_value(query))))
+        q = self.cross_query(x).view(b, h, 1, dim // h)
+        kv = self.cross_key_value(memory).view(b, length, 2, h, dim // h).permute(2, 0, 3, 1, 4)
+        attn = F.scaled_dot_product_attention(
+            q, kv[0], kv[1], attn_mask=attend[:, None, None, :],
+            dropout_p=self.dropout.p if self.training else 0.0,
+        )
+        x = self.norm2(x + self.dropout(self.cross_out(attn.reshape(b, dim))))
+        return self.norm3(x + self.dropout(self.feedforward(x)))
 
 
 class QueryDecoder(nn.Module):
@@ -22,16 +59,17 @@ class QueryDecoder(nn.Module):
         super().__init__()
         self.query = nn.Linear(query_dim, dim)
         self.null_token = nn.Parameter(torch.randn(1, 1, dim) * 0.02)
-        layer = nn.TransformerDecoderLayer(dim, heads, feedforward, dropout, batch_first=True)
-        self.decoder = nn.TransformerDecoder(layer, layers)
+        self.layers = nn.ModuleList(QueryDecoderLayer(dim, heads, feedforward, dropout) for _ in range(layers))
 
     def forward(self, memory: torch.Tensor, valid: torch.Tensor, h_dynamics: torch.Tensor) -> torch.Tensor:
         """``memory (B, L, C)``, ``valid (B, L)`` bool, ``h_dynamics (B, Dq)`` -> ``(B, C)``."""
         batch = memory.shape[0]
         memory = torch.cat([self.null_token.expand(batch, -1, -1), memory], 1)
-        ignore = torch.cat([valid.new_zeros(batch, 1), ~valid], 1)
-        query = self.query(h_dynamics)[:, None]
-        return self.decoder(query, memory, memory_key_padding_mask=ignore)[:, 0]
+        attend = torch.cat([valid.new_ones(batch, 1), valid], 1)
+        x = self.query(h_dynamics)
+        for layer in self.layers:
+            x = layer(x, memory, attend)
+        return x
 
 
 class GraspEncoder(nn.Module):

@@ -33,18 +33,22 @@ def perturb_poses(poses: torch.Tensor, translation: float, rotation: float) -> t
     return poses @ se3.se3_exp(noise)
 
 
-def history_dynamics(poses: torch.Tensor, body_twists: torch.Tensor) -> torch.Tensor:
+def history_dynamics(
+    relative: torch.Tensor, body_twists: torch.Tensor, log_relative: torch.Tensor | None = None
+) -> torch.Tensor:
     """Past dynamics ``x_t = [log(T_0^-1 T_t), Ad(T_0^-1 T_t) xi_t]`` (paper, Dynamics Encoding).
 
     Args:
-        poses: ``(B, T, 4, 4)`` world-frame EE poses, the last one is the current pose ``T_0``.
+        relative: ``(B, T, 4, 4)`` past poses in the current EE frame, ``T_0^-1 T_t`` (last = identity).
         body_twists: ``(B, T, 6)`` EE body twists ``xi_t`` (each in its own frame ``T_t``).
+        log_relative: ``se3_log(relative)`` if already computed (batched with other logs).
     Returns:
         ``(B, T, 12)``: pose relative to the current EE frame (6, log map) and the twist expressed
         in the current EE frame (6).
     """
-    relative = se3.relative_transform(poses[:, -1:], poses)
-    return torch.cat([se3.se3_log(relative), (se3.adjoint(relative) @ body_twists[..., None])[..., 0]], -1)
+    if log_relative is None:
+        log_relative = se3.se3_log(relative)
+    return torch.cat([log_relative, (se3.adjoint(relative) @ body_twists[..., None])[..., 0]], -1)
 
 
 def future_dynamics(actions: torch.Tensor, dt: float) -> torch.Tensor:

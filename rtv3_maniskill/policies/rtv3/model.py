@@ -111,22 +111,28 @@ class RTV3Model(nn.Module):
         if augment and poses.shape[1] > 1 and (c.history_noise_translation > 0 or c.history_noise_rotation > 0):
             past = egocentric.perturb_poses(poses[:, :-1], c.history_noise_translation, c.history_noise_rotation)
             poses = torch.cat([past, poses[:, -1:]], 1)
-        x = egocentric.history_dynamics(poses, states[..., ft.EE_TWIST])  # x_{-T+1:0}, (B, T, 12)
+        current = poses[:, -1]  # T_0
+        relative = se3.relative_transform(current[:, None], poses)  # T_0^-1 T_t, (B, T, 4, 4)
+        ctx = inputs.context
+        grasp_relative = None
+        if self.grasp_encoder is not None:
+            grasp_relative = egocentric.grasps_in_frame(current, ctx.grasps)  # T_0^-1 G, (B, M, 4, 4)
+            relative = torch.cat([relative, grasp_relative], 1)
+        logs = se3.se3_log(relative)  # one batched log map for history and grasps
+        steps = poses.shape[1]
+        x = egocentric.history_dynamics(relative[:, :steps], states[..., ft.EE_TWIST], logs[:, :steps])  # x_{-T+1:0}
         _, (h_last, _) = self.history_encoder(self._dynamics_in(x))
         h0_d = h_last[-1]  # h0_d = LSTM(x_{-T+1:0})
-        current = poses[:, -1]  # T_0
         parts = [h0_d]
-        ctx = inputs.context
         if self.point_encoder is not None:
             xyz = egocentric.points_in_frame(current, ctx.point_cloud[..., :3])  # T_0^-1 P
             feat = torch.cat([xyz * c.position_scale, ctx.point_cloud[..., 3:6]], -1)
             parts.append(self.point_encoder(xyz, feat, ctx.point_mask, h0_d))  # h_pcl
-        if self.grasp_encoder is not None:
-            relative = egocentric.grasps_in_frame(current, ctx.grasps)  # T_0^-1 G
-            log_map = se3.se3_log(relative)
+        if grasp_relative is not None:
+            log_map = logs[:, steps:]
             feats = [log_map[..., :3] * c.position_scale, log_map[..., 3:]]
             if c.grasp_input_position:
-                feats.append(relative[..., :3, 3] * c.position_scale)
+                feats.append(grasp_relative[..., :3, 3] * c.position_scale)
             feats += [ctx.grasps[..., 7:8] * c.position_scale, ctx.grasps[..., 8:9]]
             valid = ctx.grasp_mask & (ctx.grasps[..., 8] > c.min_grasp_score) if c.min_grasp_score > 0 else ctx.grasp_mask
             grasp_feat = torch.where(valid[..., None], torch.cat(feats, -1), 0.0)

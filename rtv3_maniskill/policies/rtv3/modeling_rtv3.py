@@ -50,6 +50,12 @@ class RTV3Policy(PreTrainedPolicy):
             config.input_features = config.default_input_features()
         if not config.output_features:
             config.output_features = config.default_output_features()
+        # N and M follow the dataset when it stores the context keys separately (the packed
+        # environment_state cannot be split without them: set num_points / max_grasps then).
+        if ft.POINT_CLOUD in config.input_features:
+            config.num_points = int(config.input_features[ft.POINT_CLOUD].shape[0])
+        if ft.GRASPS in config.input_features:
+            config.max_grasps = int(config.input_features[ft.GRASPS].shape[0])
         config.validate_features()
         self.config = config
         self.model = RTV3Model(config)
@@ -85,7 +91,7 @@ class RTV3Policy(PreTrainedPolicy):
         info["loss"] = float(loss.detach())
         return loss, info
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         """Most likely body twist ``(B, 6)`` [v (m/s), w (rad/s)] in the current EE frame.
 
@@ -99,14 +105,14 @@ class RTV3Policy(PreTrainedPolicy):
             self._action_queue.extend(actions.transpose(0, 1))
         return self._action_queue.popleft()
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def predict_action_chunk(self, batch: dict[str, Tensor], update_history: bool = True, **kwargs) -> Tensor:
         """Most likely future twists ``(B, H, 6)`` (argmax z, then the mode of each Gaussian)."""
         self.eval()
         inputs = self._inference_inputs(batch, update_history)
         return self.model.most_likely(inputs, self.config.horizon, int(self.train_step))
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def predict_modes(self, batch: dict[str, Tensor], update_history: bool = True) -> tuple[Tensor, Tensor]:
         """Most likely trajectory per maneuver class ``(B, K, H, 6)`` and log p(z|h0) ``(B, K)`` (Best-of-Mode)."""
         self.eval()

@@ -257,4 +257,4 @@ class PointTransformerEncoder(nn.Module):
         tokens[dest] = pts.feat
         mask = torch.zeros(pts.batch_size * width, dtype=torch.bool, device=pts.feat.device)
         mask[dest] = True
-        return tokens.view(pts.batch_size, width, -1), mask.view(pts.batch_size, width)
+        return tokens.view(pts.batch_size, width, pts.feat.shape[1]), mask.view(pts.batch_size, width)

@@ -1,0 +1,5 @@
+import sys
+
+from rtv3_maniskill.cli import main
+
+sys.exit(main())
