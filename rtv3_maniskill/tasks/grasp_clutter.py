@@ -154,6 +154,7 @@ class GraspClutterEnv(BaseEnv):
         super()._load_agent(options, sapien.Pose(p=ROBOT_BASE_POSITION.tolist()))
 
     def _load_scene(self, options: dict):
+        self._contact_links = None
         self.table_scene = TableSceneBuilder(self, robot_init_qpos_noise=0.0)
         self.table_scene.build()
         self.layouts, self.grasp_sets, self.objects = [], [], []
@@ -298,8 +299,9 @@ class GraspClutterEnv(BaseEnv):
 
     def robot_in_collision(self) -> torch.Tensor:
         """``(B,)`` bool: any robot link but the base touches something with force above threshold."""
-        links = [link.name for link in self.agent.robot.get_links() if link.name not in ("panda_link0",)]
-        forces = self.agent.robot.get_net_contact_forces(links)
+        if getattr(self, "_contact_links", None) is None:
+            self._contact_links = [link.name for link in self.agent.robot.get_links() if link.name != "panda_link0"]
+        forces = self.agent.robot.get_net_contact_forces(self._contact_links)
         return (forces.norm(dim=-1) > self.collision_force_threshold).any(-1)
 
     def evaluate(self) -> dict:
@@ -337,6 +339,7 @@ class GraspClutterEnv(BaseEnv):
             self.scene._gpu_fetch_all()
         if self._prev_tcp_pose is not None:
             self._tcp_twist = se3.body_twist(self._prev_tcp_pose, self.tcp_pose_matrix, 1.0 / self.control_freq)
+            self._prev_tcp_pose = None
 
     def _get_obs_extra(self, info: dict):
         pose = self.agent.tcp.pose

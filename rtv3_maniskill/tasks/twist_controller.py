@@ -61,8 +61,9 @@ class PDEETwistController(PDJointPosController):
 
     def joint_velocities(self, q: torch.Tensor, body_twist: torch.Tensor) -> torch.Tensor:
         """``q (B, 7)``, TCP body twist ``(B, 6)`` -> joint velocities ``(B, 7)`` (damped least squares)."""
-        jac = self.chain.jacobian(q)  # (B, 6, 7): [v; w] of the TCP origin, robot-base axes
-        rot = self.chain.forward_kinematics(q).get_matrix()[:, :3, :3]
+        # (B, 6, 7): [v; w] of the TCP origin in robot-base axes, and the TCP pose.
+        jac, tcp = self.chain.jacobian(q, ret_eef_pose=True)
+        rot = tcp[:, :3, :3]
         twist_base = torch.cat([rot @ body_twist[:, :3, None], rot @ body_twist[:, 3:, None]], 1)
         damping = self.config.ik_damping**2 * torch.eye(6, device=q.device, dtype=q.dtype)
         qd = jac.transpose(1, 2) @ torch.linalg.solve(jac @ jac.transpose(1, 2) + damping, twist_base)
