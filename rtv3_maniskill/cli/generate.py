@@ -165,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
         grasp_targets_attempted=len(all_attempts),
         trajectories=ok,
         failures=dict((k, v) for k, v in outcome_counts.items() if k != "success"),
-        planner_success_rate=ok / max(1, len(all_attempts)),
+        success_rate_over_feasible_targets=ok / max(1, len(all_attempts) - outcome_counts.get("infeasible_target", 0)),
         frames=exported,
         dataset_bytes=data_bytes,
         bytes_per_frame=data_bytes / max(1, exported),

@@ -30,7 +30,16 @@ from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF_SIZE
 
 HOLD_STEPS = 13
-FAILURE_REASONS = ("planning_failed", "collision", "disturbed_scene", "joint_limit", "missed_pregrasp", "no_start_pose")
+FAILURE_REASONS = (
+    "infeasible_target",  # no collision-free IK for the pre-grasp or the grasp: not a planner failure
+    "planning_failed",
+    "collision",
+    "disturbed_scene",
+    "joint_limit",
+    "missed_pregrasp",
+    "no_start_pose",
+)
+_INFEASIBLE = ("ik_failed", "goal_in_collision")
 PREGRASP_POSITION_TOLERANCE = 0.01
 """m: the executed motion must pass within this distance of the pre-grasp."""
 
@@ -152,10 +161,10 @@ class DemonstrationRecorder:
         pregrasp[:3, 3] -= PREGRASP_DISTANCE * grasp[:3, 2]
         transit = self.planner.plan_to_pose(q_start, pregrasp, timeout=self.plan_timeout, seed=seed)
         if not transit.success:
-            return "planning_failed"
+            return "infeasible_target" if transit.failure_reason in _INFEASIBLE else "planning_failed"
         approach = self.planner.plan_straight_line(transit.trajectory.q[-1], grasp, ignore_objects={target_object})
         if not approach.success:
-            return "planning_failed"
+            return "infeasible_target" if approach.failure_reason in _INFEASIBLE else "planning_failed"
         self._grasp = grasp
         return self._execute(transit.trajectory, approach.trajectory, grasp_index, target_object, pregrasp, seed)
 
