@@ -89,3 +89,19 @@ def unpack_context(packed: torch.Tensor, num_points: int, max_grasps: int) -> di
         GRASPS: packed[..., n6 + n : n6 + n + m9].reshape(*lead, max_grasps, GRASP_DIM),
         GRASPS_MASK: packed[..., n6 + n + m9 :],
     }
+
+
+def observation_from_env(obs: dict) -> dict[str, torch.Tensor]:
+    """``GraspClutter-v1`` observation (``state_dict`` or ``pointcloud`` mode) -> policy inputs.
+
+    Returns the dataset's ``observation.*`` keys, batched ``(B, ...)``, float32.
+    """
+    extra, agent = obs["extra"], obs["agent"]
+    state = torch.cat([extra["tcp_pose"], extra["tcp_twist"], agent["qpos"][..., :7], agent["qvel"][..., :7]], -1)
+    return {
+        STATE: state.float(),
+        POINT_CLOUD: extra["point_cloud"].float(),
+        POINT_CLOUD_MASK: extra["point_cloud_mask"].float(),
+        GRASPS: extra["grasps"].float(),
+        GRASPS_MASK: extra["grasps_mask"].float(),
+    }

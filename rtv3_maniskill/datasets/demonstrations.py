@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import se3
-from rtv3_maniskill.features import DT
+from rtv3_maniskill.features import DT, STATE, observation_from_env
 from rtv3_maniskill.tasks.grasp_clutter import PREGRASP_DISTANCE
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF_SIZE
@@ -103,10 +103,7 @@ def describe_grasp(object_name: str, grasp_pose: np.ndarray) -> str:
 
 
 def _state_vector(obs: dict) -> np.ndarray:
-    extra = obs["extra"]
-    qpos = obs["agent"]["qpos"][0, :7]
-    qvel = obs["agent"]["qvel"][0, :7]
-    return torch.cat([extra["tcp_pose"][0], extra["tcp_twist"][0], qpos, qvel]).cpu().numpy().astype(np.float32)
+    return observation_from_env(obs)[STATE][0].cpu().numpy()
 
 
 class DemonstrationRecorder:
