@@ -166,6 +166,8 @@ class PlannerConfig:
     """Security margins for free-space motion (``plan_to_pose``)."""
     approach_margins: CollisionMargins = CollisionMargins(objects=0.003, table=0.002, self=0.0)
     """Security margins for the straight-line approach (the fingers come close)."""
+    joint_limit_margin: float = 0.02
+    """rad kept from every joint limit by IK goals and the planner's state space."""
     ik_attempts: int = 40
     """IK seeds tried per target (the seed configuration first, then random ones)."""
     num_goal_solutions: int = 4
@@ -336,7 +338,9 @@ class PandaPlanner:
         n_attempts = attempts if attempts is not None else cfg.ik_attempts
         for attempt in range(n_attempts):
             start = q_seed if attempt == 0 else self.kin.random_configuration(rng, margin=0.05)
-            q, ok = self.kin.ik_from_seed(target, start, pos_tol=cfg.ik_pos_tol, rot_tol=cfg.ik_rot_tol)
+            q, ok = self.kin.ik_from_seed(
+                target, start, pos_tol=cfg.ik_pos_tol, rot_tol=cfg.ik_rot_tol, limit_margin=cfg.joint_limit_margin
+            )
             if not ok:
                 continue
             if any(np.abs(q - c).max() < cfg.ik_min_separation for c in converged):
@@ -426,8 +430,8 @@ class PandaPlanner:
         space = ob.RealVectorStateSpace(DOF)
         bounds = ob.RealVectorBounds(DOF)
         for i in range(DOF):
-            bounds.setLow(i, float(self.kin.lower[i]))
-            bounds.setHigh(i, float(self.kin.upper[i]))
+            bounds.setLow(i, float(self.kin.lower[i] + self.config.joint_limit_margin))
+            bounds.setHigh(i, float(self.kin.upper[i] - self.config.joint_limit_margin))
         space.setBounds(bounds)
         ss = og.SimpleSetup(space)
         world = self.world

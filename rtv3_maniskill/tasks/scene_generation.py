@@ -27,7 +27,7 @@ from rtv3_maniskill.tasks.scene_geometry import (
 
 SceneType = Literal["pile", "packed"]
 SCENE_TYPES = ("pile", "packed")
-_SIM_DT = 1.0 / 240.0
+_SIM_DT = 1.0 / 100.0  # ManiSkill's sim_freq for this task, so layouts rest in both
 
 
 def matrix_to_sapien_pose(matrix: np.ndarray) -> sapien.Pose:
@@ -125,12 +125,27 @@ class _SettleScene:
         self.scene.remove_entity(actor)
         self.actors.remove(actor)
 
-    def settle(self, max_time: float = 2.0, check_every: int = 24) -> None:
+    def settle(self, max_time: float = 2.0, check_every: int = 10) -> None:
         """Step until every object is at rest (speeds < 1 cm/s, 0.1 rad/s) or ``max_time``."""
         for step in range(int(max_time / _SIM_DT)):
             self.scene.step()
             if (step + 1) % check_every == 0 and self._at_rest():
                 return
+
+    def settle_until_stable(self, window: float = 0.5, tolerance: float = 0.002, max_windows: int = 6) -> None:
+        """Simulate in windows until no object moves more than ``tolerance`` m in one window;
+        objects still moving after ``max_windows`` are removed (they would drift in the task)."""
+        moving: list[sapien.Entity] = []
+        for _ in range(max_windows):
+            before = [a.get_pose().p.copy() for a in self.actors]
+            for _step in range(int(window / _SIM_DT)):
+                self.scene.step()
+            moving = [a for a, p in zip(self.actors, before) if np.linalg.norm(a.get_pose().p - p) > tolerance]
+            if not moving:
+                return
+        for actor in moving:
+            self.remove(actor)
+        self.settle(max_time=1.0)
 
     def _at_rest(self) -> bool:
         for actor in self.actors:
@@ -205,7 +220,8 @@ def _pile(object_set: ObjectSet, rng: np.random.Generator, count: int) -> SceneG
         sim.settle(max_time=1.0)
     sim.remove_walls()
     sim.settle(max_time=2.0)
-    return _collect(placed)
+    sim.settle_until_stable()
+    return _collect(placed, sim)
 
 
 def _packed(object_set: ObjectSet, rng: np.random.Generator, count: int) -> SceneGeometry:
@@ -226,12 +242,15 @@ def _packed(object_set: ObjectSet, rng: np.random.Generator, count: int) -> Scen
             placed.append((obj, actor))
             break
     sim.settle(max_time=1.5)
-    return _collect(placed)
+    sim.settle_until_stable()
+    return _collect(placed, sim)
 
 
-def _collect(placed: list[tuple[ObjectGeometry, sapien.Entity]]) -> SceneGeometry:
+def _collect(placed: list[tuple[ObjectGeometry, sapien.Entity]], sim: _SettleScene) -> SceneGeometry:
     objects, poses = [], []
     for obj, actor in placed:
+        if actor not in sim.actors:
+            continue
         matrix = sapien_pose_to_matrix(actor.get_pose())
         centre = matrix[:3, :3] @ obj.collision_mesh().centroid + matrix[:3, 3]
         if _in_workspace(centre):

@@ -1,0 +1,141 @@
+"""``GraspClutter-v1`` for ``lerobot-eval``: EnvConfig ``rtv3_clutter`` and a numpy gym view.
+
+``lerobot-eval`` keeps only a few observation keys of a gym env (``agent_pos`` ->
+``observation.state``, ``environment_state`` -> ``observation.environment_state``, ...), so
+this view hands over the 27-D state as ``agent_pos`` and the static scene context (point
+cloud + grasp set, ``features.pack_context``) as ``environment_state``. The action is the
+6-D TCP body twist (the gripper stays open); ``info["is_success"]`` is the task's success.
+
+    lerobot-eval --policy.path=CKPT --env.type=rtv3_clutter --eval.n_episodes=10 --eval.batch_size=1
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gymnasium as gym
+import numpy as np
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.envs.configs import EnvConfig
+
+from rtv3_maniskill import features as F
+
+GYM_ID = "rtv3/GraspClutterLeRobot-v1"
+
+
+class GraspClutterLeRobotEnv(gym.Env):
+    """Single ``GraspClutter-v1`` env (CPU) with numpy observations for LeRobot."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": F.FPS}
+
+    def __init__(self, render_mode: str | None = "rgb_array", max_episode_steps: int = 150, **task_kwargs):
+        import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
+
+        self.render_mode = render_mode
+        self._env = gym.make(
+            "GraspClutter-v1",
+            obs_mode="state_dict",
+            control_mode="pd_ee_twist",
+            render_mode=render_mode,
+            max_episode_steps=max_episode_steps,
+            **task_kwargs,
+        )
+        base = self._env.unwrapped
+        self.num_points, self.max_grasps = base.num_points, base.max_grasps
+        self._max_episode_steps = max_episode_steps
+        context_dim = F.environment_state_dim(self.num_points, self.max_grasps)
+        self.observation_space = gym.spaces.Dict(
+            {
+                "agent_pos": gym.spaces.Box(-np.inf, np.inf, (F.STATE_DIM,), np.float32),
+                "environment_state": gym.spaces.Box(-np.inf, np.inf, (context_dim,), np.float32),
+            }
+        )
+        limit = np.array([0.3] * 3 + [1.2] * 3, dtype=np.float32)
+        self.action_space = gym.spaces.Box(-limit, limit, dtype=np.float32)
+
+    def _convert(self, obs: dict) -> dict[str, np.ndarray]:
+        inputs = F.observation_from_env(obs)
+        packed = F.pack_context(inputs[F.POINT_CLOUD], inputs[F.POINT_CLOUD_MASK], inputs[F.GRASPS], inputs[F.GRASPS_MASK])
+        return {"agent_pos": inputs[F.STATE][0].cpu().numpy(), "environment_state": packed[0].cpu().numpy()}
+
+    @staticmethod
+    def _info(info: dict) -> dict:
+        return {
+            "is_success": bool(info["success"][0]),
+            "collision": bool(info["collision"][0]),
+            "pregrasp_distance": float(info["pregrasp_distance"][0]),
+        }
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        obs, info = self._env.reset(seed=seed, options=options)
+        return self._convert(obs), self._info(info)
+
+    def step(self, action):
+        action = np.asarray(action, dtype=np.float32).reshape(-1)
+        if action.shape != (6,):
+            raise ValueError(f"action must be a (6,) TCP body twist [v, w], got shape {action.shape}")
+        full = torch.from_numpy(np.concatenate([action, [0.04]]).astype(np.float32))[None]
+        obs, reward, terminated, truncated, info = self._env.step(full)
+        out_info = self._info(info)
+        return self._convert(obs), float(reward[0]), bool(terminated[0]) or out_info["is_success"], bool(truncated[0]), out_info
+
+    def render(self):
+        return self._env.render()[0].cpu().numpy()
+
+    def close(self):
+        self._env.close()
+
+
+if GYM_ID not in gym.registry:
+    gym.register(id=GYM_ID, entry_point=GraspClutterLeRobotEnv, max_episode_steps=150)
+
+
+@EnvConfig.register_subclass("rtv3_clutter")
+@dataclass
+class RTV3ClutterEnvConfig(EnvConfig):
+    """``--env.type=rtv3_clutter``: ``GraspClutter-v1`` with state + packed scene context."""
+
+    task: str | None = "GraspClutter-v1"
+    fps: int = F.FPS
+    episode_length: int = 150
+    scene_type: str = "mixed"
+    object_source: str = "procedural"
+    num_points: int = F.DEFAULT_NUM_POINTS
+    max_grasps: int = F.DEFAULT_MAX_GRASPS
+    features: dict[str, PolicyFeature] = field(default_factory=dict)
+    features_map: dict[str, str] = field(
+        default_factory=lambda: {
+            F.ACTION: F.ACTION,
+            "agent_pos": F.STATE,
+            "environment_state": "observation.environment_state",
+        }
+    )
+
+    def __post_init__(self):
+        self.features = {
+            F.ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(6,)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(F.STATE_DIM,)),
+            "environment_state": PolicyFeature(
+                type=FeatureType.ENV, shape=(F.environment_state_dim(self.num_points, self.max_grasps),)
+            ),
+        }
+
+    @property
+    def package_name(self) -> str:
+        return "rtv3_maniskill.lerobot_env"
+
+    @property
+    def gym_id(self) -> str:
+        return GYM_ID
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return dict(
+            max_episode_steps=self.episode_length,
+            scene_type=self.scene_type,
+            object_source=self.object_source,
+            num_points=self.num_points,
+            max_grasps=self.max_grasps,
+        )
