@@ -49,7 +49,7 @@ def synthetic_batch(batch: int, cfg: RTV3Config, seed: int = 0) -> dict[str, tor
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=1, help="intra-op threads (1 is robust on a shared 2-core machine)")
     parser.add_argument("--steps", type=int, default=200, help="select_action calls timed")
     parser.add_argument("--train-batches", type=int, default=5)
     parser.add_argument("--train-batch-size", type=int, default=64)

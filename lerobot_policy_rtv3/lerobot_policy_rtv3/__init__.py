@@ -11,3 +11,6 @@ by its naming rules.
 from rtv3_maniskill.policies.rtv3 import RTV3Config  # noqa: F401  (registers policy type "rtv3")
 
 __all__ = ["RTV3Config"]
+
+# Registers `--env.type=rtv3_clutter` (GraspClutter-v1 for lerobot-eval).
+from rtv3_maniskill import lerobot_env  # noqa: E402,F401

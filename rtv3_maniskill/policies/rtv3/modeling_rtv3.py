@@ -79,7 +79,10 @@ class RTV3Policy(PreTrainedPolicy):
         Batch: ``observation.state (B, T, 27)``, context keys with or without the time axis (only the last
         frame is read) or ``observation.environment_state``, ``action (B, H, 6)``, optional ``action_is_pad
         (B, H)`` (padded steps are left out of the likelihood) and ``target_grasp_index`` (enables the
-        random grasp-subset augmentation in training mode).
+        random grasp-subset augmentation in training mode; note that LeRobot's processor pipeline drops
+        keys outside ``observation.*`` / ``action`` / ``*_is_pad``). ``observation.state_is_pad`` needs no
+        handling: LeRobot pads the history with copies of the first frame, exactly what the inference
+        queue does at an episode start.
         """
         inputs = self._training_inputs(batch)
         actions, valid = read_actions(batch, inputs.states.shape[0], self.config.horizon)
@@ -92,13 +95,14 @@ class RTV3Policy(PreTrainedPolicy):
         return loss, info
 
     @torch.inference_mode()
-    def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+    def select_action(self, batch: dict[str, Tensor], update_history: bool = True, **kwargs) -> Tensor:
         """Most likely body twist ``(B, 6)`` [v (m/s), w (rad/s)] in the current EE frame.
 
         Runs the model every ``n_action_steps`` steps (default 1: closed loop) and queues the rest.
+        ``update_history=False`` reads a single-step observation without appending it to the history.
         """
         self.eval()
-        inputs = self._inference_inputs(batch, update_history=True)
+        inputs = self._inference_inputs(batch, update_history)
         if len(self._action_queue) == 0:
             steps = self.config.n_action_steps
             actions = self.model.most_likely(inputs, steps, int(self.train_step))
