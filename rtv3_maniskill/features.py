@@ -24,6 +24,10 @@ STATE = "observation.state"
 """``(27,)`` [ee position (3, world, m), ee quaternion wxyz (4, world),
 ee body twist (6), arm joint positions (7, rad), arm joint velocities (7, rad/s)]."""
 STATE_DIM = 27
+STATE_HISTORY = "observation.state_history"
+"""``(T, 27)`` the last T states (oldest first, the current one last), the first state repeated
+before the episode start. Stored by the dataset so that training reads one row per sample
+instead of a T-frame window of every ``observation.*`` key (point clouds included)."""
 POINT_CLOUD = "observation.point_cloud"
 """``(N, 6)`` xyz (world, m) + rgb in [0, 1]; rows where the mask is 0 are zeros."""
 POINT_CLOUD_MASK = "observation.point_cloud_mask"

@@ -24,7 +24,7 @@ ARGS = ["--num-points", "256", "--max-grasps", "16", "--context", "mesh", "--sce
 
 def _windows() -> dict[str, list[float]]:
     past = [i / F.FPS for i in range(-F.HISTORY_STEPS + 1, 1)]
-    keys = [F.STATE, F.POINT_CLOUD, F.POINT_CLOUD_MASK, F.GRASPS, F.GRASPS_MASK]
+    keys = [F.STATE, F.STATE_HISTORY, F.POINT_CLOUD, F.POINT_CLOUD_MASK, F.GRASPS, F.GRASPS_MASK]
     out = {k: past for k in keys}
     out[F.ACTION] = [i / F.FPS for i in range(F.HORIZON_STEPS)]
     return out
@@ -78,7 +78,7 @@ def test_episode_reaches_pregrasp_then_grasp(tiny_dataset):
 
 def test_interrupted_run_resumes_without_duplicates(tmp_path):
     root = tmp_path / "ds"
-    cmd = [sys.executable, "-m", "rtv3_maniskill.cli", "generate", "--num-scenes", "1", "--output", str(root), "--grasps-per-scene", "3", *ARGS]
+    cmd = [sys.executable, "-m", "rtv3_maniskill.cli", "generate", "--num-scenes", "1", "--output", str(root), "--grasps-per-scene", "6", *ARGS]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=dict(os.environ, PYTHONWARNINGS="ignore"))
     staging = root / "rtv3_staging"
     deadline = time.time() + 240
@@ -88,10 +88,10 @@ def test_interrupted_run_resumes_without_duplicates(tmp_path):
     proc.wait()
     first = StagingArea(root).attempts()
     assert first, "the first run should have finished at least one episode before the kill"
-    assert len(first) < 3, "the kill should land before the run finished"
-    assert main(["generate", "--num-scenes", "1", "--output", str(root), "--grasps-per-scene", "3", *ARGS]) == 0
+    assert len(first) < 6, "the kill should land before the run finished"
+    assert main(["generate", "--num-scenes", "1", "--output", str(root), "--grasps-per-scene", "6", *ARGS]) == 0
     attempts = StagingArea(root).attempts()
-    assert len(attempts) == 3  # every (scene, grasp) exactly once
+    assert len(attempts) == 6  # every (scene, grasp) exactly once
     lines = (staging / "attempts.jsonl").read_text().splitlines()
     keys = [json.loads(line)["key"] for line in lines if line.strip()]
     assert len(keys) == len(set(keys)), "no grasp target was attempted twice"
@@ -122,3 +122,33 @@ def test_visualize_episode(tiny_dataset, tmp_path):
     assert out.stat().st_size > 10_000
     image = np.asarray(__import__("imageio").v3.imread(out))
     assert image.ndim == 3 and image.std() > 5
+
+
+def test_state_history_matches_the_episode(tiny_dataset):
+    """The stored history is the last T states, the first repeated before the episode start."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset(REPO_ID, root=tiny_dataset, episodes=[0])
+    states = torch.stack([ds[i][F.STATE] for i in range(len(ds))])
+    for t in (0, 3, len(ds) - 1):
+        history = ds[t][F.STATE_HISTORY]
+        expected = torch.stack([states[max(t - k, 0)] for k in range(F.HISTORY_STEPS - 1, -1, -1)])
+        assert torch.equal(history, expected)
+
+
+def test_lerobot_train_on_generated_dataset(tiny_dataset, tmp_path):
+    """`lerobot-train --policy.type=rtv3` on `rtv3 generate` output, no extra flag, then reload."""
+    from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
+
+    lerobot_train = Path(sys.executable).parent / "lerobot-train"
+    out = tmp_path / "train"
+    cmd = [
+        str(lerobot_train), f"--dataset.repo_id={REPO_ID}", f"--dataset.root={tiny_dataset}", "--policy.type=rtv3",
+        "--policy.push_to_hub=false", "--policy.device=cpu", "--steps=2", "--batch_size=2", "--num_workers=0",
+        "--save_freq=2", f"--output_dir={out}", "--wandb.enable=false",
+    ]
+    result = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, OMP_NUM_THREADS="1"), timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    checkpoint = out / "checkpoints" / "last" / "pretrained_model"
+    policy = RTV3Policy.from_pretrained(checkpoint)
+    assert policy.config.num_points == 256 and policy.config.max_grasps == 16

@@ -149,7 +149,8 @@ def batch(policy: RTV3Policy) -> dict:
 
 def test_config_windows_presets_and_validation():
     cfg = RTV3Config(device="cpu")
-    assert cfg.observation_delta_indices == list(range(-7, 1))
+    assert cfg.observation_delta_indices is None  # history read from observation.state_history
+    assert RTV3Config(device="cpu", use_stored_history=False).observation_delta_indices == list(range(-7, 1))
     assert cfg.action_delta_indices == list(range(12))
     assert cfg.reward_delta_indices is None
     assert cfg.translation_scale == 5.0 and cfg.kl_weight == 100.0 and cfg.kl_min == 0.07
@@ -564,7 +565,7 @@ def test_lerobot_dataset_factory_and_processors_train(tmp_path):
     register_third_party_plugins()  # what lerobot-train / lerobot-eval do first
     assert get_policy_class("rtv3") is RTV3Policy
 
-    cfg = RTV3Config(device="cpu", num_points=64, max_grasps=8)
+    cfg = RTV3Config(device="cpu", num_points=64, max_grasps=8, use_stored_history=False)
     written = _write_dataset(tmp_path / "ds", cfg)
     meta = written.meta
     assert meta.total_episodes == 2 and meta.fps == ft.FPS
@@ -605,12 +606,13 @@ def test_lerobot_train_cli_trains_and_checkpoints(tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from lerobot.policies.factory import make_pre_post_processors
 
-    cfg = RTV3Config(device="cpu", num_points=64, max_grasps=8)
+    cfg = RTV3Config(device="cpu", num_points=64, max_grasps=8, use_stored_history=False)
     _write_dataset(tmp_path / "ds", cfg, frames=16)
     args = [
         sys.executable, "-m", "lerobot.scripts.lerobot_train",
         "--dataset.repo_id=local/rtv3_test", f"--dataset.root={tmp_path / 'ds'}",
         "--policy.type=rtv3", "--policy.device=cpu",  # N = 64, M = 8 are read from the dataset features
+        "--policy.use_stored_history=false",  # this synthetic dataset has no observation.state_history
         "--policy.push_to_hub=false", "--steps=2", "--batch_size=2", "--num_workers=0", "--save_freq=2",
         f"--output_dir={tmp_path / 'out'}", "--wandb.enable=false",
     ]

@@ -278,19 +278,12 @@ class HandBuiltPrior:
     def __init__(self, weights=(0.3, 0.7)):
         self.weights = weights
         self.mixture_calls = 0
-        self.action_calls = 0
         self.resets = 0
 
     def predict_step0_mixture(self, observation):
         self.mixture_calls += 1
         state = observation[features.STATE]
         return make_two_class_mixture(self.weights, batch=1 if state.ndim == 1 else state.shape[0])
-
-    def select_action(self, observation):
-        self.action_calls += 1
-        state = observation[features.STATE]
-        b = 1 if state.ndim == 1 else state.shape[0]
-        return torch.tensor([[0.3, 0.0, 0.0, 0.0, 0.0, 0.6]]).expand(b, 6)  # class 1's most likely twist
 
     def reset(self):
         self.resets += 1
@@ -339,7 +332,6 @@ def test_no_input_near_the_object_surface_hands_control_to_the_user():
     action = ctrl.step(obs, None)
     assert ctrl.last_diagnostics.mode == "user_only"
     assert torch.equal(action, torch.zeros(6))
-    assert prior.action_calls == 0
     # padded points (mask 0) do not count: the only valid point is far away
     obs[features.POINT_CLOUD_MASK][0] = 0.0
     ctrl.step(obs, None)
@@ -438,7 +430,7 @@ def test_empty_grasp_set_falls_back_to_user_only_without_calling_the_prior():
     assert d.mode == "user_only" and bool(d.fallback[0])
     torch.testing.assert_close(action, user)
     assert torch.equal(ctrl.step(make_observation(grasps=0), None), torch.zeros(6))
-    assert prior.mixture_calls == 0 and prior.action_calls == 0
+    assert prior.mixture_calls == 0
 
 
 def test_user_covariance_adapts_across_steps():

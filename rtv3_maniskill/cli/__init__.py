@@ -13,7 +13,9 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "scene": ("scene", "render a random clutter scene; save an image with its point cloud and grasp candidates"),
     "generate": ("generate", "expert demonstrations from the motion planner -> LeRobot v3 dataset (resumable)"),
     "visualize-episode": ("visualize_episode", "plot one dataset episode: scene, grasps, target and executed trajectory"),
+    "evaluate": ("evaluate", "RT-V3 prior benchmarks: trajectory prediction (ADE/FDE) and closed-loop planning (SR/CR/TOR)"),
     "benchmark-env": ("benchmark_env", "time GraspClutter-v1: steps/s, reset incl. grasp sampling, point-cloud capture"),
+    "benchmark-shared": ("benchmark_shared", "simulated users x Direct / HO / RT-V3 shared control: SR, CR, iterations (resumable)"),
 }
 
 

@@ -43,6 +43,7 @@ def dataset_features(num_points: int, max_grasps: int) -> dict:
     )
     return {
         F.STATE: {"dtype": "float32", "shape": (F.STATE_DIM,), "names": state_names},
+        F.STATE_HISTORY: {"dtype": "float32", "shape": (F.HISTORY_STEPS, F.STATE_DIM), "names": ["step", "state"]},
         F.POINT_CLOUD: {"dtype": "float32", "shape": (num_points, 6), "names": ["point", "xyzrgb"]},
         F.POINT_CLOUD_MASK: {"dtype": "float32", "shape": (num_points,), "names": ["point"]},
         F.GRASPS: {"dtype": "float32", "shape": (max_grasps, F.GRASP_DIM), "names": ["grasp", "pos_quat_width_score"]},
@@ -53,6 +54,13 @@ def dataset_features(num_points: int, max_grasps: int) -> dict:
         "target_object": {"dtype": "int64", "shape": (1,), "names": None},
         "pregrasp_reached": {"dtype": "bool", "shape": (1,), "names": None},
     }
+
+
+def state_histories(states: np.ndarray, steps: int = F.HISTORY_STEPS) -> np.ndarray:
+    """``(S, 27)`` episode states -> ``(S, steps, 27)`` windows ending at each step, the first
+    state repeated before the episode start (what LeRobot's windows and the policy queue do)."""
+    padded = np.concatenate([np.repeat(states[:1], steps - 1, 0), states])
+    return np.stack([padded[t : t + steps] for t in range(len(states))]).astype(np.float32)
 
 
 class StagingArea:
@@ -166,10 +174,12 @@ def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progres
     for path in tqdm(files, desc="export to LeRobot", disable=not progress, unit="episode"):
         ep = staging.load(path)
         meta = ep["meta"]
+        history = state_histories(ep["state"])
         for t in range(len(ep["state"])):
             dataset.add_frame(
                 {
                     F.STATE: ep["state"][t],
+                    F.STATE_HISTORY: history[t],
                     F.POINT_CLOUD: ep["point_cloud"],
                     F.POINT_CLOUD_MASK: ep["point_cloud_mask"],
                     F.GRASPS: ep["grasps"],

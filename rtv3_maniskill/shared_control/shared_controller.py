@@ -7,7 +7,7 @@ Per step and batch element, one of three modes (``SharedControlDiagnostics.modes
   the fused mixture (:func:`posterior.mixture_mode`).
 * ``"autonomous"``: no user command (``None`` or all zeros), asynchronous mode on, and
   the EE is farther than ``autonomy_cutoff_distance`` from every scene point -> execute
-  the prior's most likely action (``policy.select_action``).
+  the prior's most likely action (argmax class, then its Gaussians' means; :func:`most_likely_twist`).
 * ``"user_only"``: the user's own command is executed (zeros if none). Happens (a) with
   no command within ``autonomy_cutoff_distance`` of the object surface (the user has
   control for the final approach), (b) in the out-of-distribution window: the user
@@ -42,7 +42,6 @@ class StepZeroPrior(Protocol):
 
     def predict_step0_mixture(self, observation: dict[str, torch.Tensor]) -> TwistMixture: ...
 
-    def select_action(self, observation: dict[str, torch.Tensor]) -> torch.Tensor: ...
 
     def reset(self) -> None: ...
 
@@ -154,17 +153,27 @@ def surface_distance(observation: dict[str, Any]) -> torch.Tensor:
     return dist.min(-1).values if dist.shape[1] > 0 else torch.full((b,), math.inf, dtype=torch.float64)
 
 
+def most_likely_twist(mixture: TwistMixture) -> torch.Tensor:
+    """The prior's most likely step-0 action ``(B, 6)``: the argmax class, the mean of its
+    translation Gaussian, then the mean of its rotation Gaussian given that translation
+    (NOTES.md "Most-Likely"; the same as the policy's ``select_action``, without a second
+    pass through the encoders)."""
+    best = mixture.log_weights.argmax(-1)
+    rows = torch.arange(best.shape[0], device=best.device)
+    rot_mean, _ = mixture.rotation_given_translation(mixture.trans_mean)
+    return torch.cat([mixture.trans_mean[rows, best], rot_mean[rows, best]], -1)
+
+
 class SharedController:
     """RT-V3 shared control around a learned prior (see the module docstring for the modes).
 
     Args:
-        policy: has ``predict_step0_mixture(obs) -> TwistMixture``, ``select_action(obs) -> (B, 6)``
-            (the prior's most likely twist) and ``reset()``.
+        policy: has ``predict_step0_mixture(obs) -> TwistMixture`` (called once per step) and ``reset()``.
         config: :class:`SharedControlConfig`.
     """
 
     def __init__(self, policy: StepZeroPrior, config: SharedControlConfig | None = None) -> None:
-        for name in ("predict_step0_mixture", "select_action", "reset"):
+        for name in ("predict_step0_mixture", "reset"):
             if not callable(getattr(policy, name, None)):
                 raise TypeError(f"policy must have a callable {name}(); {type(policy).__name__} has none")
         self.policy = policy
@@ -268,11 +277,7 @@ class SharedController:
                 mode = posterior.mixture_mode(fused, c.mode_search_starts, c.mode_search_iters)
                 action = torch.where(shared[:, None], mode, action)
             if autonomous.any():
-                auto = torch.as_tensor(self.policy.select_action(observation)).double()
-                auto = auto[None] if auto.ndim == 1 else auto
-                if auto.shape != (b, 6):
-                    raise ValueError(f"policy.select_action returned shape {tuple(auto.shape)}, expected ({b}, 6)")
-                action = torch.where(autonomous[:, None], auto, action)
+                action = torch.where(autonomous[:, None], most_likely_twist(mixture).double(), action)
             modes = ["shared" if s else "autonomous" if a else "user_only" for s, a in zip(shared.tolist(), autonomous.tolist())]
             # Diagnostics: the fused mixture where it was executed, the prior's elsewhere.
             shown = prior

@@ -107,10 +107,14 @@ def read_context(batch: dict[str, torch.Tensor], num_points: int, max_grasps: in
 
 
 def read_states(batch: dict[str, torch.Tensor]) -> torch.Tensor:
-    """``observation.state`` as given, checked: ``(B, T, 27)``, ``(B, 27)`` or ``(27,)`` -> same tensor."""
-    if ft.STATE not in batch:
+    """The state history, checked: ``observation.state_history (B, T, 27)`` when the batch has it
+    (datasets store it), else ``observation.state`` as given: ``(B, T, 27)``, ``(B, 27)`` or ``(27,)``."""
+    key = ft.STATE_HISTORY if ft.STATE_HISTORY in batch else ft.STATE
+    if key not in batch:
         raise KeyError(f"batch lacks '{ft.STATE}'")
-    states = _as_tensor(ft.STATE, batch[ft.STATE])
+    states = _as_tensor(key, batch[key])
+    if key == ft.STATE_HISTORY and states.ndim == 2:
+        states = states[None]
     if states.ndim not in (1, 2, 3) or states.shape[-1] != ft.STATE_DIM:
         raise ValueError(
             f"'{ft.STATE}' has shape {tuple(states.shape)}; expected (B, T, {ft.STATE_DIM}), "

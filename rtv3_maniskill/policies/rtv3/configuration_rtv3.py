@@ -110,6 +110,9 @@ class RTV3Config(PreTrainedConfig):
     )
 
     # Latent variable and decoder.
+    use_stored_history: bool = True
+    """Read the history from the dataset's ``observation.state_history`` (one row per sample) instead of
+    asking LeRobot for T-frame windows of every ``observation.*`` key. Set False for datasets without it."""
     num_maneuver_classes: int = 10
     prior_hidden_dim: int = 32
     decoder_hidden_dim: int = 128
@@ -262,8 +265,12 @@ class RTV3Config(PreTrainedConfig):
         )
 
     @property
-    def observation_delta_indices(self) -> list[int]:
-        """History frames ``-T+1 .. 0`` for every ``observation.*`` key."""
+    def observation_delta_indices(self) -> list[int] | None:
+        """History frames ``-T+1 .. 0`` for every ``observation.*`` key — or none when the
+        dataset stores ``observation.state_history`` (then each sample is one row: ~8x less
+        data loading, since LeRobot would window the point clouds too)."""
+        if self.use_stored_history:
+            return None
         return list(range(-self.n_obs_steps + 1, 1))
 
     @property

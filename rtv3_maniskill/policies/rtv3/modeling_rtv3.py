@@ -146,7 +146,8 @@ class RTV3Policy(PreTrainedPolicy):
         if states.ndim != 3 or states.shape[1] != self.config.n_obs_steps:
             raise ValueError(
                 f"'{ft.STATE}' has shape {tuple(states.shape)}; training needs the history "
-                f"(B, {self.config.n_obs_steps}, {ft.STATE_DIM}) (use the policy's delta_timestamps)"
+                f"(B, {self.config.n_obs_steps}, {ft.STATE_DIM}): the dataset's '{ft.STATE_HISTORY}', or, for a "
+                f"dataset without it, --policy.use_stored_history=false (LeRobot then windows '{ft.STATE}')"
             )
         context = read_context(batch, self.config.num_points, self.config.max_grasps)
         _check_batch(states.shape[0], context.batch_size)

@@ -1,0 +1,479 @@
+"""Closed-loop planning benchmark of the RT-V3 prior (paper Sec. VI-B "Planning in the Simulation
+Environment", Table I right half; NOTES.md "Metrics").
+
+Protocol:
+
+* scenes: ``GraspClutter-v1`` (``obs_mode="state_dict"``, ``control_mode="pd_ee_twist"``), scene
+  ``i`` has seed ``seed * 100000 + i`` (``rtv3 generate``'s numbering: pick a ``seed`` that no
+  training data used; the default 9 matches ``rtv3 benchmark-shared``);
+* targets: ``max_grasps_per_scene`` grasp candidates per scene (a seeded random subset; the
+  paper selects two per scene), one trial per (scene, grasp);
+* start: a random TCP pose in the upper workspace pointing down within 45 deg
+  (``random_start_pose``, as in the demonstrations) reached by collision-free IK, the robot
+  reset there (``init_qpos``);
+* context: the paper selects target grasps and counts reaching "one of the target poses" as
+  a success, i.e. the target poses are the grasp context the policy sees. ``context="target"``
+  (default) shows the policy only the trial's target grasp (all other rows of
+  ``observation.grasps_mask`` set to 0); ``context="all"`` shows every candidate and counts
+  reaching any of them (a reactive-planning test without intent);
+* control: every 50 ms step the policy's most likely action (ML setting: argmax z, then the
+  mode of each Gaussian) from ``select_action``; ``policy.reset()`` per trial;
+* outcome per trial (exclusive, so SR + CR + TOR = 1): ``collision`` at the first step with
+  any robot contact (the env's ``info["collision"]``), else ``success`` at the first step whose
+  planning distance to a context grasp's pre-grasp, or its pi-about-z twin, is below 0.2
+  (the paper's pose distance with rotation weight 0.3/pi, NOTES.md "Metrics"), else
+  ``timeout`` after 150 steps (7.5 s). Trials without a collision-free start pose are logged
+  as ``no_start_pose`` and left out of the rates.
+
+Outputs in ``output``: ``planning_trials.csv`` (one row per trial, appended and flushed as it
+finishes; a rerun skips finished (scene, grasp) rows), ``planning_summary.json`` and
+``planning_config.json`` (a resumed run must use the same settings).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+import torch
+
+from rtv3_maniskill import features as ft
+from rtv3_maniskill import se3
+
+PLANNING_SUCCESS_THRESHOLD = 0.2
+"""Pose distance (m + (0.3/pi) rad, L1) below which a pre-grasp counts as reached (NOTES.md)."""
+PLANNING_MAX_STEPS = 150
+"""7.5 s at 20 Hz."""
+PREGRASP_DISTANCE = 0.05
+"""m back along the grasp's approach (z) axis; equals ``tasks.grasp_clutter.PREGRASP_DISTANCE``."""
+SCENE_SEED_STRIDE = 100000
+OUTCOMES = ("success", "collision", "timeout")
+NO_START_POSE = "no_start_pose"
+CONTEXT_MODES = ("target", "all")
+POINT_CLOUD_SOURCES = ("rendered", "mesh")
+GRIPPER_OPEN = 1.0
+"""Normalised gripper command of ``pd_ee_twist`` (the Panda's ``pd_joint_pos`` gripper): open."""
+TRIAL_FIELDS = (
+    "scene_seed", "grasp_index", "outcome", "steps", "final_distance", "min_distance",
+    "reached_grasp", "context_grasps", "start_attempts", "wall_time_s",
+)
+PAPER_TABLE1_FULL = {"SR": 0.904, "CR": 0.079, "TOR": 0.017}
+
+
+# ----------------------------------------------------------------------------- success rule
+
+
+def pregrasp_poses(grasp_poses: torch.Tensor) -> torch.Tensor:
+    """Grasp poses ``(..., 4, 4)`` moved ``PREGRASP_DISTANCE`` back along their own z (approach) axis."""
+    offset = torch.eye(4, dtype=grasp_poses.dtype, device=grasp_poses.device)
+    offset[2, 3] = -PREGRASP_DISTANCE
+    return grasp_poses @ offset
+
+
+def planning_distance(tcp_pose: torch.Tensor, grasp_poses: torch.Tensor) -> torch.Tensor:
+    """Distance ``(..., M)`` of the TCP ``(..., 4, 4)`` to each grasp's pre-grasp ``(..., M, 4, 4)``.
+
+    The paper's pose distance with the planning rotation weight 0.3/pi, ``E = T_pre^-1 T_tcp``,
+    the smaller of the pre-grasp and its pi-about-z twin (parallel-jaw symmetry).
+    """
+    if tcp_pose.shape[-2:] != (4, 4) or grasp_poses.ndim < 3 or grasp_poses.shape[-2:] != (4, 4):
+        raise ValueError(f"need tcp_pose (..., 4, 4) and grasp_poses (..., M, 4, 4), got {tuple(tcp_pose.shape)}, {tuple(grasp_poses.shape)}")
+    target = pregrasp_poses(grasp_poses)
+    tcp = tcp_pose[..., None, :, :].to(target.dtype)
+    d = se3.pose_distance(target, tcp, se3.PLANNING_ROT_WEIGHT)
+    d_twin = se3.pose_distance(se3.rotate_about_z(target, math.pi), tcp, se3.PLANNING_ROT_WEIGHT)
+    return torch.minimum(d, d_twin)
+
+
+def is_planning_success(distance: torch.Tensor | float, threshold: float = PLANNING_SUCCESS_THRESHOLD) -> torch.Tensor:
+    """``distance < threshold`` (strict), elementwise."""
+    return torch.as_tensor(distance) < threshold
+
+
+def trial_outcome(collision: bool, success: bool) -> str | None:
+    """Outcome decided at one step: a contact fails the trial even if the pose was reached; None = go on."""
+    if collision:
+        return "collision"
+    if success:
+        return "success"
+    return None
+
+
+# ----------------------------------------------------------------------------- trials
+
+
+def scene_seeds(seed: int, scenes: int) -> list[int]:
+    """Scene ``i`` -> seed ``seed * 100000 + i``."""
+    return [seed * SCENE_SEED_STRIDE + i for i in range(scenes)]
+
+
+def select_targets(valid: Sequence[int], cap: int | None, seed: int, scene_seed: int) -> list[int]:
+    """All valid grasp indices, or a seeded random subset of ``cap`` of them (sorted)."""
+    valid = sorted(int(v) for v in valid)
+    if cap is None or cap >= len(valid):
+        return valid
+    rng = np.random.default_rng([seed, scene_seed, 29])
+    return sorted(int(i) for i in rng.choice(valid, size=cap, replace=False))
+
+
+def context_mask(grasps_mask: torch.Tensor, target: int, context: str) -> torch.Tensor:
+    """``observation.grasps_mask (B, M)`` the policy sees: only ``target`` (``"target"``) or unchanged (``"all"``)."""
+    if context not in CONTEXT_MODES:
+        raise ValueError(f"unknown context mode {context!r}; expected one of {CONTEXT_MODES}")
+    if context == "all":
+        return grasps_mask
+    if not 0 <= target < grasps_mask.shape[-1] or not bool(grasps_mask[..., target].gt(0.5).all()):
+        raise ValueError(f"target grasp {target} is not a valid candidate of the scene")
+    out = torch.zeros_like(grasps_mask)
+    out[..., target] = 1.0
+    return out
+
+
+@dataclass
+class PlanningConfig:
+    """Settings of one ``rtv3 evaluate planning`` run."""
+
+    output: Path
+    policy_path: Path | None = None
+    scenes: int = 20
+    seed: int = 9
+    max_grasps_per_scene: int | None = 2
+    context: str = "target"
+    point_cloud: str = "rendered"
+    """``"rendered"``: the depth camera's cloud captured once per scene (``rtv3 generate``'s default);
+    ``"mesh"``: sampled from the object meshes (``rtv3 generate --context mesh``). Use what the policy was trained on."""
+    scene_type: str = "mixed"
+    max_steps: int = PLANNING_MAX_STEPS
+    threshold: float = PLANNING_SUCCESS_THRESHOLD
+    start_pose_attempts: int = 10
+
+    def __post_init__(self) -> None:
+        self.output = Path(self.output).expanduser()
+        if self.scenes < 1:
+            raise ValueError(f"scenes must be >= 1, got {self.scenes}")
+        if self.max_grasps_per_scene is not None and self.max_grasps_per_scene < 1:
+            raise ValueError(f"max_grasps_per_scene must be >= 1 (or None for all), got {self.max_grasps_per_scene}")
+        if self.context not in CONTEXT_MODES:
+            raise ValueError(f"unknown context mode {self.context!r}; expected one of {CONTEXT_MODES}")
+        if self.point_cloud not in POINT_CLOUD_SOURCES:
+            raise ValueError(f"unknown point-cloud source {self.point_cloud!r}; expected one of {POINT_CLOUD_SOURCES}")
+        if self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        if not (self.threshold > 0 and math.isfinite(self.threshold)):
+            raise ValueError(f"threshold must be a positive number, got {self.threshold}")
+        if self.start_pose_attempts < 1:
+            raise ValueError(f"start_pose_attempts must be >= 1, got {self.start_pose_attempts}")
+
+    def fingerprint(self) -> dict[str, Any]:
+        """Settings that change a trial's outcome: a resumed run must match them."""
+        return dict(
+            seed=self.seed, context=self.context, point_cloud=self.point_cloud, scene_type=self.scene_type,
+            max_steps=self.max_steps, threshold=self.threshold, start_pose_attempts=self.start_pose_attempts,
+            policy_path=str(Path(self.policy_path).expanduser().resolve()) if self.policy_path is not None else None,
+        )
+
+
+class TrialsFile:
+    """``planning_trials.csv``: one row per finished trial, flushed at once; keys of finished trials."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.rows: dict[tuple[int, int], dict[str, str]] = {}
+        if self.path.exists():
+            for row in read_trials(self.path):
+                self.rows[(int(row["scene_seed"]), int(row["grasp_index"]))] = row
+        new = not self.path.exists() or self.path.stat().st_size == 0
+        if not new:
+            with open(self.path, "rb") as f:  # a torn last line (killed run): start on a new line
+                f.seek(-1, os.SEEK_END)
+                torn = f.read(1) != b"\n"
+        self._file = open(self.path, "a", newline="")
+        if not new and torn:
+            self._file.write("\n")
+        self._writer = csv.DictWriter(self._file, fieldnames=TRIAL_FIELDS)
+        if new:
+            self._writer.writeheader()
+            self._flush()
+
+    def _flush(self) -> None:
+        self._file.flush()
+        os.fsync(self._file.fileno())
+
+    def append(self, row: dict[str, Any]) -> None:
+        self._writer.writerow({k: row[k] for k in TRIAL_FIELDS})
+        self._flush()
+        self.rows[(int(row["scene_seed"]), int(row["grasp_index"]))] = {k: str(row[k]) for k in TRIAL_FIELDS}
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def read_trials(path: Path) -> list[dict[str, str]]:
+    """Complete rows of a trials file (a torn or foreign line is skipped)."""
+    rows = []
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            if any(row.get(k) in (None, "") for k in ("scene_seed", "grasp_index", "outcome", "steps")):
+                continue
+            if row["outcome"] not in (*OUTCOMES, NO_START_POSE):
+                continue
+            try:
+                int(row["scene_seed"]), int(row["grasp_index"]), int(row["steps"])
+            except ValueError:
+                continue
+            rows.append(row)
+    return rows
+
+
+def summarize(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
+    """SR / CR / TOR over the trials with a start pose, their counts, mean steps of successes."""
+    rows = list(rows)
+    counts = {o: sum(1 for r in rows if r["outcome"] == o) for o in OUTCOMES}
+    trials = sum(counts.values())
+    success_steps = [int(r["steps"]) for r in rows if r["outcome"] == "success"]
+    rate = (lambda k: counts[k] / trials) if trials else (lambda k: float("nan"))
+    return dict(
+        trials=trials,
+        **{k: v for k, v in counts.items()},
+        no_start_pose=sum(1 for r in rows if r["outcome"] == NO_START_POSE),
+        SR=rate("success"),
+        CR=rate("collision"),
+        TOR=rate("timeout"),
+        mean_steps_success=float(np.mean(success_steps)) if success_steps else None,
+    )
+
+
+class SceneIndex:
+    """``planning_scenes.jsonl``: the valid grasp indices of every scene built so far, so that a
+    resumed run picks the same targets without building finished scenes again."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.valid: dict[int, list[int]] = {}
+        if self.path.exists():
+            for line in self.path.read_text().splitlines():
+                try:
+                    record = json.loads(line)
+                    self.valid[int(record["scene_seed"])] = [int(g) for g in record["valid_grasps"]]
+                except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+                    continue  # a torn last line
+
+    def get(self, scene_seed: int) -> list[int] | None:
+        return self.valid.get(int(scene_seed))
+
+    def add(self, scene_seed: int, valid: Sequence[int]) -> None:
+        self.valid[int(scene_seed)] = [int(g) for g in valid]
+        with open(self.path, "a") as f:
+            f.write("\n" + json.dumps(dict(scene_seed=int(scene_seed), valid_grasps=self.valid[int(scene_seed)])) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+
+def _check_config(output: Path, fingerprint: dict[str, Any]) -> None:
+    path = output / "planning_config.json"
+    if path.exists():
+        existing = json.loads(path.read_text())
+        if existing != fingerprint:
+            diff = {k: (existing.get(k), fingerprint.get(k)) for k in set(existing) | set(fingerprint) if existing.get(k) != fingerprint.get(k)}
+            raise ValueError(
+                f"{output} holds planning trials run with other settings {diff} (existing, requested); "
+                "use another --output folder or the same settings to resume"
+            )
+        return
+    path.write_text(json.dumps(fingerprint, indent=2))
+
+
+# ----------------------------------------------------------------------------- running
+
+
+class PlanningBenchmark:
+    """One ``GraspClutter-v1`` env, the planner for start poses, and the policy under test."""
+
+    def __init__(self, config: PlanningConfig, policy: Any) -> None:
+        self.config = config
+        self.policy = policy
+        self._env = None
+        self.scene_seed: int | None = None
+        self.planner = None
+        self._cloud: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    @property
+    def env(self):
+        """The env, made on first use (a fully resumed run never builds it)."""
+        if self._env is None:
+            self._env = self._make_env()
+        return self._env
+
+    @property
+    def base(self):
+        return self.env.unwrapped
+
+    def _make_env(self):
+        import gymnasium as gym
+
+        import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
+
+        config, policy = self.config, self.policy
+        return gym.make(
+            "GraspClutter-v1",
+            obs_mode="state_dict",
+            control_mode="pd_ee_twist",
+            scene_type=config.scene_type,
+            num_points=int(policy.config.num_points),
+            max_grasps=int(policy.config.max_grasps),
+            reconfiguration_freq=0,
+            max_episode_steps=config.max_steps + 10,  # the benchmark stops trials itself
+        )
+
+    def load_scene(self, scene_seed: int) -> list[int]:
+        """Build the scene of ``scene_seed`` (reconfigure); returns its valid grasp indices."""
+        from rtv3_maniskill.datasets.planner import PandaPlanner
+
+        self.env.reset(seed=scene_seed, options=dict(reconfigure=True))
+        self.scene_seed = scene_seed
+        self.planner = PandaPlanner(self.base.layouts[0])
+        self._cloud = None
+        if self.config.point_cloud == "rendered":
+            if not self.base.scene.can_render():
+                raise RuntimeError(
+                    "the scene cannot render, so there is no depth-camera point cloud; use --point-cloud mesh "
+                    "(only if the policy was trained on mesh clouds) or set up a Vulkan driver (STACK.md)"
+                )
+            self._cloud = self.base.capture_point_cloud()
+        return torch.nonzero(self.base.grasps_mask[0] > 0.5).flatten().tolist()
+
+    def _observation(self, obs: dict, target: int) -> dict[str, torch.Tensor]:
+        observation = ft.observation_from_env(obs)
+        if self._cloud is not None:
+            observation[ft.POINT_CLOUD] = self._cloud[0].float()
+            observation[ft.POINT_CLOUD_MASK] = self._cloud[1].float()
+        observation[ft.GRASPS_MASK] = context_mask(observation[ft.GRASPS_MASK], target, self.config.context)
+        return observation
+
+    def start_configuration(self, grasp: int, context_poses: torch.Tensor) -> tuple[np.ndarray | None, int]:
+        """Collision-free start joints for the trial and the attempts it took (None if none was found).
+
+        Start poses already within the success threshold of a context grasp are redrawn.
+        """
+        from rtv3_maniskill.datasets.demonstrations import random_start_pose
+
+        rng = np.random.default_rng([self.config.seed, int(self.scene_seed), grasp])
+        for attempt in range(1, self.config.start_pose_attempts + 1):
+            pose = random_start_pose(rng)
+            if bool(is_planning_success(planning_distance(torch.as_tensor(pose), context_poses).min(), self.config.threshold)):
+                continue
+            q = self.planner.solve_ik(pose, seed=int(self.scene_seed) * 31 + grasp * 1009 + attempt)
+            if q is not None:
+                return q, attempt
+        return None, self.config.start_pose_attempts
+
+    def run_trial(self, grasp: int) -> dict[str, Any]:
+        """One trial towards grasp ``grasp`` of the loaded scene; a ``planning_trials.csv`` row."""
+        start_time = time.perf_counter()
+        valid = self.base.grasps_mask[0] > 0.5
+        context = torch.zeros_like(valid)
+        if self.config.context == "target":
+            context[grasp] = True
+        else:
+            context = valid.clone()
+        context_indices = torch.nonzero(context).flatten()
+        context_poses = self.base.grasp_poses[0, context_indices].double()
+        row: dict[str, Any] = dict(
+            scene_seed=int(self.scene_seed), grasp_index=grasp, context_grasps=int(len(context_indices)),
+            reached_grasp=-1, final_distance="", min_distance="",
+        )
+        q_start, attempts = self.start_configuration(grasp, context_poses)
+        row["start_attempts"] = attempts
+        if q_start is None:
+            row.update(outcome=NO_START_POSE, steps=0, wall_time_s=f"{time.perf_counter() - start_time:.2f}")
+            return row
+        obs, _ = self.env.reset(options=dict(reconfigure=False, init_qpos=q_start, target_grasp_index=grasp))
+        self.policy.reset()
+        outcome, steps, min_distance, distances = "timeout", self.config.max_steps, math.inf, None
+        for step in range(1, self.config.max_steps + 1):
+            twist = self.policy.select_action(self._observation(obs, grasp))
+            command = torch.cat([twist.reshape(1, 6).float().cpu(), torch.tensor([[GRIPPER_OPEN]])], -1)
+            obs, _, _, _, info = self.env.step(command)
+            distances = planning_distance(self.base.tcp_pose_matrix[0].double(), context_poses)
+            min_distance = min(min_distance, float(distances.min()))
+            decided = trial_outcome(bool(info["collision"][0]), bool(is_planning_success(distances.min(), self.config.threshold)))
+            if decided is not None:
+                outcome, steps = decided, step
+                if decided == "success":
+                    row["reached_grasp"] = int(context_indices[int(distances.argmin())])
+                break
+        row.update(
+            outcome=outcome, steps=steps, final_distance=f"{float(distances.min()):.4f}",
+            min_distance=f"{min_distance:.4f}", wall_time_s=f"{time.perf_counter() - start_time:.2f}",
+        )
+        return row
+
+    def close(self) -> None:
+        if self._env is not None:
+            self._env.close()
+            self._env = None
+
+
+def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress: bool = True) -> dict[str, Any]:
+    """Run (or resume) the benchmark; returns the summary (also written to ``planning_summary.json``).
+
+    ``policy`` overrides loading ``config.policy_path``.
+    """
+    from tqdm import tqdm
+
+    from rtv3_maniskill.evaluation.prediction import load_policy
+
+    torch.set_num_threads(1)
+    if policy is None:
+        if config.policy_path is None:
+            raise ValueError("no policy: pass --policy.path (an RT-V3 checkpoint folder)")
+        policy = load_policy(config.policy_path)
+    output = config.output
+    output.mkdir(parents=True, exist_ok=True)
+    _check_config(output, config.fingerprint())
+    trials = TrialsFile(output / "planning_trials.csv")
+    scene_index = SceneIndex(output / "planning_scenes.jsonl")
+    bench = PlanningBenchmark(config, policy)
+    keys: list[tuple[int, int]] = []
+    bar = tqdm(total=0, unit="trial", desc="planning", disable=not progress, dynamic_ncols=True)
+    try:
+        for scene_seed in scene_seeds(config.seed, config.scenes):
+            valid = scene_index.get(scene_seed)
+            if valid is None:
+                valid = bench.load_scene(scene_seed)
+                scene_index.add(scene_seed, valid)
+            targets = select_targets(valid, config.max_grasps_per_scene, config.seed, scene_seed)
+            bar.total += len(targets)
+            bar.refresh()
+            for g in targets:
+                keys.append((scene_seed, g))
+                if (scene_seed, g) not in trials.rows:
+                    if bench.scene_seed != scene_seed:
+                        bench.load_scene(scene_seed)
+                    trials.append(bench.run_trial(g))
+                bar.update(1)
+                stats = summarize(trials.rows[k] for k in keys)
+                if stats["trials"]:
+                    bar.set_postfix(SR=f"{100 * stats['SR']:.0f}%", CR=f"{100 * stats['CR']:.0f}%", TOR=f"{100 * stats['TOR']:.0f}%")
+    finally:
+        bar.close()
+        trials.close()
+        bench.close()
+    summary = summarize(trials.rows[k] for k in keys)
+    summary.update(
+        scenes=config.scenes,
+        scene_seeds=[scene_seeds(config.seed, config.scenes)[0], scene_seeds(config.seed, config.scenes)[-1]],
+        max_grasps_per_scene=config.max_grasps_per_scene,
+        settings=config.fingerprint(),
+        success_rule=f"pose distance (rot weight 0.3/pi) to a context grasp's pre-grasp or its twin < {config.threshold}",
+        paper_table1_full_rtv3=PAPER_TABLE1_FULL,
+    )
+    (output / "planning_summary.json").write_text(json.dumps(summary, indent=2))
+    return summary

@@ -1,0 +1,367 @@
+"""Simulated shared-control benchmark (paper Sec. "Simulated Shared Control Experiments", Table II).
+
+Every valid grasp candidate of every scene is a goal (optionally a seeded random subset of
+``max_grasps_per_scene`` per scene); each simulated user drives towards the goal's pre-grasp
+with each assistance method for up to 150 steps (7.5 s). Per trial: success = the env's
+``info["success"]`` (pose distance to the pre-grasp < 0.1, shared-control weights, either
+parallel-jaw twin), collision = any robot contact during the trial (NOTES.md). Reported per
+(user, method): SR, CR, mean iterations of the successful trials, and the clean SR (success
+without any contact).
+
+Outputs in ``output``: ``results.csv`` (one row per trial, appended and flushed as trials
+finish; a rerun skips the finished (scene, grasp, user, method) rows), ``summary.csv``,
+``summary.md`` and ``success_rates.png``; ``config.json`` guards a resumed run against
+different settings.
+
+Scene ``i`` uses seed ``seed * 100000 + i`` (``rtv3 generate``'s convention; the default
+seed 9 keeps the benchmark scenes apart from training scenes made with seeds 0..8). The
+user's random stream depends only on (seed, scene, grasp, user), so every method faces the
+same noise.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+RESULT_FIELDS = (
+    "scene_seed", "grasp_index", "user", "method", "success", "collision", "steps",
+    "final_distance", "autonomous_steps", "user_only_steps", "user_seed", "wall_time_s",
+)
+SUMMARY_FIELDS = ("user", "method", "trials", "SR", "CR", "clean_SR", "mean_iterations")
+DEFAULT_USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
+DEFAULT_METHODS = ("direct", "ho", "rtv3")
+METHOD_LABELS = {"direct": "Direct", "ho": "HO", "rtv3": "RT-V3"}
+SCENE_SEED_STRIDE = 100000
+
+
+class BenchmarkError(ValueError):
+    """A problem with the benchmark's settings or output folder (message meant for the user)."""
+
+
+@dataclass
+class BenchmarkConfig:
+    """Settings of one benchmark run (``rtv3 benchmark-shared``)."""
+
+    output: Path
+    policy_path: Path | None = None
+    """RT-V3 checkpoint; None = the shipped one. Only loaded when ``"rtv3"`` is among the methods."""
+    scenes: int = 50
+    users: Sequence[str] = DEFAULT_USERS
+    methods: Sequence[str] = DEFAULT_METHODS
+    seed: int = 9
+    max_grasps_per_scene: int | None = None
+    max_steps: int = 150
+    obs_mode: str = "state_dict"
+    rendered_context: bool = False
+    scene_type: str = "mixed"
+    ho_variant: str = "rtv3_authors"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        from rtv3_maniskill.shared_control.env_wrapper import METHOD_NAMES
+        from rtv3_maniskill.shared_control.hindsight_optimization import VARIANTS
+        from rtv3_maniskill.shared_control.simulated_users import USERS
+
+        self.output = Path(self.output)
+        self.users = tuple(_canonical(u) for u in self.users)
+        self.methods = tuple(_canonical(m) for m in self.methods)
+        if not self.users or not self.methods:
+            raise BenchmarkError("give at least one user and one method")
+        for user in self.users:
+            if user not in USERS:
+                raise BenchmarkError(f"unknown simulated user {user!r}; known users: {', '.join(sorted(USERS))}")
+        for method in self.methods:
+            if method not in METHOD_NAMES:
+                raise BenchmarkError(f"unknown assistance method {method!r}; known methods: {', '.join(METHOD_NAMES)}")
+        for name, values in (("users", self.users), ("methods", self.methods)):
+            if len(set(values)) != len(values):
+                raise BenchmarkError(f"{name} lists a name twice: {', '.join(values)}")
+        if self.scenes < 1:
+            raise BenchmarkError(f"scenes must be >= 1, got {self.scenes}")
+        if self.max_grasps_per_scene is not None and self.max_grasps_per_scene < 1:
+            raise BenchmarkError(f"max_grasps_per_scene must be >= 1 or None, got {self.max_grasps_per_scene}")
+        if self.max_steps < 1:
+            raise BenchmarkError(f"max_steps must be >= 1, got {self.max_steps}")
+        if self.obs_mode not in ("state_dict", "pointcloud"):
+            raise BenchmarkError(f"obs_mode must be 'state_dict' or 'pointcloud', got {self.obs_mode!r}")
+        if self.ho_variant not in VARIANTS:
+            raise BenchmarkError(f"unknown HO variant {self.ho_variant!r}; known: {', '.join(VARIANTS)}")
+
+    def scene_seeds(self) -> list[int]:
+        return [self.seed * SCENE_SEED_STRIDE + i for i in range(self.scenes)]
+
+    def fingerprint(self, policy_path: Path | None) -> dict[str, Any]:
+        """Settings that change every trial's outcome: a resumed run must match them."""
+        return dict(
+            seed=self.seed, max_steps=self.max_steps, obs_mode=self.obs_mode, rendered_context=self.rendered_context,
+            scene_type=self.scene_type, ho_variant=self.ho_variant, max_grasps_per_scene=self.max_grasps_per_scene,
+            policy_path=str(policy_path.resolve()) if policy_path is not None else None, **self.extra,
+        )
+
+
+def _canonical(name: str) -> str:
+    return str(name).strip().lower().replace("-", "_")
+
+
+def user_seed(seed: int, scene_seed: int, grasp_index: int, user: str) -> int:
+    """Seed of the user's noise in one trial: same for every method."""
+    return int(np.random.SeedSequence([seed, scene_seed, grasp_index, zlib.crc32(user.encode())]).generate_state(1)[0])
+
+
+def select_grasps(valid: Sequence[int], cap: int | None, seed: int, scene_seed: int) -> list[int]:
+    """All valid grasp indices, or a seeded random subset of ``cap`` of them (sorted)."""
+    valid = list(valid)
+    if cap is None or cap >= len(valid):
+        return valid
+    rng = np.random.default_rng([seed, scene_seed, 17])
+    return sorted(int(i) for i in rng.choice(valid, size=cap, replace=False))
+
+
+# ----------------------------------------------------------------------------- results file
+
+
+class ResultsFile:
+    """``results.csv``: one row per finished trial, flushed at once; keys of finished trials."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.done: set[tuple[int, int, str, str]] = set()
+        if path.exists() and path.stat().st_size > 0:
+            with path.open(newline="") as f:
+                reader = csv.DictReader(f)
+                if tuple(reader.fieldnames or ()) != RESULT_FIELDS:
+                    raise BenchmarkError(
+                        f"{path} has columns {reader.fieldnames}, expected {list(RESULT_FIELDS)}: "
+                        f"not a results file of this benchmark; choose another --output"
+                    )
+                for row in reader:
+                    self.done.add(self.key(row))
+            self._file = path.open("a", newline="")
+            self._writer = csv.DictWriter(self._file, RESULT_FIELDS)
+        else:
+            self._file = path.open("w", newline="")
+            self._writer = csv.DictWriter(self._file, RESULT_FIELDS)
+            self._writer.writeheader()
+            self._file.flush()
+
+    @staticmethod
+    def key(row: dict[str, Any]) -> tuple[int, int, str, str]:
+        return int(row["scene_seed"]), int(row["grasp_index"]), str(row["user"]), str(row["method"])
+
+    def append(self, row: dict[str, Any]) -> None:
+        self._writer.writerow(row)
+        self._file.flush()
+        self.done.add(self.key(row))
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def read_results(path: Path) -> list[dict[str, Any]]:
+    """Rows of ``results.csv`` with numbers parsed."""
+    rows = []
+    with Path(path).open(newline="") as f:
+        for row in csv.DictReader(f):
+            rows.append({
+                **row,
+                "scene_seed": int(row["scene_seed"]), "grasp_index": int(row["grasp_index"]),
+                "success": int(row["success"]), "collision": int(row["collision"]), "steps": int(row["steps"]),
+            })
+    return rows
+
+
+# ----------------------------------------------------------------------------- summary
+
+
+def summarize(rows: Iterable[dict[str, Any]], users: Sequence[str] | None = None,
+              methods: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    """Per (user, method): trials, SR %, CR %, clean SR % (success without contact), mean
+    iterations of successful trials (NaN if none). Every row counts; ``users`` / ``methods`` only
+    set the order (names not listed follow, sorted)."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for row in rows:
+        groups.setdefault((row["user"], row["method"]), []).append(row)
+    order_u = list(dict.fromkeys([*(users or []), *sorted({u for u, _ in groups})]))
+    order_m = list(dict.fromkeys([*(methods or []), *sorted({m for _, m in groups})]))
+    out = []
+    for u in order_u:
+        for m in order_m:
+            trials = groups.get((u, m), [])
+            if not trials:
+                continue
+            n = len(trials)
+            wins = [t for t in trials if int(t["success"])]
+            out.append(dict(
+                user=u, method=m, trials=n,
+                SR=100.0 * len(wins) / n,
+                CR=100.0 * sum(int(t["collision"]) for t in trials) / n,
+                clean_SR=100.0 * sum(1 for t in wins if not int(t["collision"])) / n,
+                mean_iterations=float(np.mean([int(t["steps"]) for t in wins])) if wins else math.nan,
+            ))
+    return out
+
+
+def _fmt(value: float, digits: int = 1) -> str:
+    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
+
+
+def summary_markdown(summary: Sequence[dict[str, Any]]) -> str:
+    """Markdown table: one row per (user, method)."""
+    lines = [
+        "| User | Method | Trials | SR % (↑) | CR % (↓) | clean SR % (↑) | Iter (↓) |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for s in summary:
+        lines.append(
+            f"| {s['user']} | {METHOD_LABELS.get(s['method'], s['method'])} | {s['trials']} | {_fmt(s['SR'])} | "
+            f"{_fmt(s['CR'])} | {_fmt(s['clean_SR'])} | {_fmt(s['mean_iterations'])} |"
+        )
+    notes = (
+        "\nSR: reached the target pre-grasp (pose distance < 0.1) within the step limit; CR: any robot "
+        "contact during the trial; clean SR: success without contact; Iter: mean control steps (20 Hz) of "
+        "the successful trials.\n"
+    )
+    return "\n".join(lines) + "\n" + notes
+
+
+def plot_success_rates(summary: Sequence[dict[str, Any]], path: Path) -> None:
+    """Grouped bar plot: SR per user (groups) and method (bars); CR in a second panel."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    users = list(dict.fromkeys(s["user"] for s in summary))
+    methods = list(dict.fromkeys(s["method"] for s in summary))
+    table = {(s["user"], s["method"]): s for s in summary}
+    width = 0.8 / max(len(methods), 1)
+    x = np.arange(len(users))
+    fig, axes = plt.subplots(1, 2, figsize=(max(8, 2.4 * len(users) * 2), 4.2))
+    for ax, key, title in ((axes[0], "SR", "Success rate (%)"), (axes[1], "CR", "Collision rate (%)")):
+        for j, m in enumerate(methods):
+            values = [table[(u, m)][key] if (u, m) in table else 0.0 for u in users]
+            bars = ax.bar(x + (j - (len(methods) - 1) / 2) * width, values, width, label=METHOD_LABELS.get(m, m))
+            for bar, v in zip(bars, values):
+                ax.annotate(f"{v:.0f}", (bar.get_x() + bar.get_width() / 2, v), ha="center", va="bottom", fontsize=7)
+        ax.set_xticks(x, [u.replace("_", "-") for u in users])
+        ax.set_ylim(0, 118)
+        ax.set_yticks(range(0, 101, 20))
+        ax.set_title(title)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(loc="upper center", ncol=len(methods), fontsize=8, frameon=False)
+    trials = sum(s["trials"] for s in summary)
+    fig.suptitle(f"Simulated shared control ({trials} trials)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_summaries(output: Path, users: Sequence[str] | None = None, methods: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    """``summary.csv``, ``summary.md`` and ``success_rates.png`` from every row of ``output/results.csv``."""
+    rows = read_results(output / "results.csv")
+    summary = summarize(rows, users, methods)
+    with (output / "summary.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, SUMMARY_FIELDS)
+        writer.writeheader()
+        for s in summary:
+            writer.writerow({k: (f"{v:.3f}" if isinstance(v, float) else v) for k, v in s.items()})
+    (output / "summary.md").write_text(summary_markdown(summary))
+    if summary:
+        plot_success_rates(summary, output / "success_rates.png")
+    return summary
+
+
+# ----------------------------------------------------------------------------- the run
+
+
+def _check_config(output: Path, fingerprint: dict[str, Any]) -> None:
+    path = output / "config.json"
+    if path.exists():
+        previous = json.loads(path.read_text())
+        changed = {k: (previous.get(k), v) for k, v in fingerprint.items() if previous.get(k) != v}
+        if changed:
+            detail = "; ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in changed.items())
+            raise BenchmarkError(f"{output} holds results made with other settings ({detail}); use another --output")
+    path.write_text(json.dumps(fingerprint, indent=2))
+
+
+def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = True) -> list[dict[str, Any]]:
+    """Run (or resume) the benchmark; returns the summary rows. ``policy`` overrides ``policy_path``."""
+    import torch
+    from tqdm import tqdm
+
+    from rtv3_maniskill.shared_control.env_wrapper import (
+        DEFAULT_POLICY_PATH,
+        SharedControlEnv,
+        load_rtv3_policy,
+        make_method,
+        run_episode,
+    )
+    from rtv3_maniskill.shared_control.simulated_users import make_user
+
+    torch.set_num_threads(1)
+    output = config.output
+    output.mkdir(parents=True, exist_ok=True)
+    need_policy = "rtv3" in config.methods
+    policy_path = None
+    if need_policy and policy is None:
+        policy_path = Path(config.policy_path) if config.policy_path is not None else DEFAULT_POLICY_PATH
+        policy = load_rtv3_policy(policy_path)  # clear error when missing
+    elif need_policy and config.policy_path is not None:
+        policy_path = Path(config.policy_path)
+    _check_config(output, config.fingerprint(policy_path))
+    results = ResultsFile(output / "results.csv")
+
+    env_kwargs: dict[str, Any] = dict(obs_mode=config.obs_mode, scene_type=config.scene_type)
+    if policy is not None:
+        env_kwargs.update(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps))
+    env = SharedControlEnv(rendered_context=config.rendered_context, **env_kwargs)
+    methods = {m: make_method(m, policy=policy, ho_variant=config.ho_variant) for m in config.methods}
+    per_grasp = len(config.users) * len(config.methods)
+    bar = tqdm(total=0, unit="trial", disable=not progress, dynamic_ncols=True)
+    wins: dict[str, list[int]] = {m: [] for m in config.methods}
+    try:
+        for scene_seed in config.scene_seeds():
+            env.reset(seed=scene_seed)
+            valid = torch.nonzero(env.base.grasps_mask[0] > 0.5).flatten().tolist()
+            grasps = select_grasps(valid, config.max_grasps_per_scene, config.seed, scene_seed)
+            bar.total += len(grasps) * per_grasp
+            bar.refresh()
+            for g in grasps:
+                for user_name in config.users:
+                    u_seed = user_seed(config.seed, scene_seed, g, user_name)
+                    for method_name, method in methods.items():
+                        key = (scene_seed, g, user_name, method_name)
+                        if key in results.done:
+                            bar.update(1)
+                            continue
+                        start = time.perf_counter()
+                        result = run_episode(
+                            env, method, make_user(user_name, u_seed), max_steps=config.max_steps,
+                            seed=scene_seed, options=dict(target_grasp_index=g),
+                        )
+                        counts = result.mode_counts
+                        results.append(dict(
+                            scene_seed=scene_seed, grasp_index=g, user=user_name, method=method_name,
+                            success=int(result.success), collision=int(result.collision), steps=result.steps,
+                            final_distance=f"{result.final_distance:.4f}",
+                            autonomous_steps=counts.get("autonomous", 0), user_only_steps=counts.get("user_only", 0),
+                            user_seed=u_seed, wall_time_s=f"{time.perf_counter() - start:.2f}",
+                        ))
+                        wins[method_name].append(int(result.success))
+                        bar.set_postfix({METHOD_LABELS.get(m, m): f"{100 * np.mean(v):.0f}%" for m, v in wins.items() if v})
+                        bar.update(1)
+    finally:
+        bar.close()
+        results.close()
+        env.close()
+    return write_summaries(output, config.users, config.methods)

@@ -1,0 +1,105 @@
+"""Latency of one RT-V3 shared-control step on CPU, prior included (target <= 10 ms).
+
+Usage: ``python scripts/benchmark_shared_controller.py [--policy.path DIR] [--steps 200] [--threads 1]``
+
+Times :meth:`SharedController.step` (prior forward pass + posterior fusion + mode search) on real
+``GraspClutter-v1`` observations, N = 2048 points and M = 64 grasps, one intra-op thread. The env
+is stepped between calls (with the controller's output, a noisy simulated user driving) but only
+the controller call is timed. Three cases: ``shared`` (user command each step),
+``autonomous`` (no command, asynchronous mode far from the objects) and ``all`` (both).
+Without a checkpoint an untrained ``RTV3Policy(RTV3Config())`` of the same size is used
+(latency does not depend on the weights).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+import torch
+
+
+def _percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values), q))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--policy.path", dest="policy_path", default=None,
+                        help="RT-V3 checkpoint folder (default: the shipped one, else an untrained policy)")
+    parser.add_argument("--steps", type=int, default=200, help="timed steps per case")
+    parser.add_argument("--warmup", type=int, default=10, help="untimed steps first")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    parser.add_argument("--num-points", type=int, default=2048)
+    parser.add_argument("--max-grasps", type=int, default=64)
+    parser.add_argument("--seed", type=int, default=900000, help="scene seed")
+    args = parser.parse_args(argv)
+    if args.steps < 1 or args.threads < 1:
+        parser.error("--steps and --threads must be >= 1")
+    torch.set_num_threads(args.threads)
+
+    import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
+    from rtv3_maniskill.features import observation_from_env
+    from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
+    from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
+    from rtv3_maniskill.shared_control import SharedControlConfig, SharedController, make_user
+    from rtv3_maniskill.shared_control.env_wrapper import DEFAULT_POLICY_PATH, SharedControlEnv, load_rtv3_policy
+
+    path = args.policy_path or (DEFAULT_POLICY_PATH if (DEFAULT_POLICY_PATH / "model.safetensors").is_file() else None)
+    if path is not None:
+        policy = load_rtv3_policy(path)
+        source = str(path)
+    else:
+        torch.manual_seed(0)
+        policy = RTV3Policy(RTV3Config(device="cpu", num_points=args.num_points, max_grasps=args.max_grasps)).eval()
+        source = "untrained RTV3Policy (no checkpoint found)"
+    n, m = policy.config.num_points, policy.config.max_grasps
+    print(f"policy: {source}; N={n} points, M={m} grasps, K={policy.config.num_maneuver_classes} classes, "
+          f"{sum(p.numel() for p in policy.parameters()) / 1e6:.2f} M parameters, {torch.get_num_threads()} thread(s)")
+
+    env = SharedControlEnv(num_points=n, max_grasps=m)
+    # The timed controller is driven directly (no wrapper method) so only step() is measured.
+    config = SharedControlConfig(max_linear_speed=0.3, max_angular_speed=1.2)
+    controller = SharedController(policy, config)
+    results: dict[str, list[float]] = {"shared": [], "autonomous": [], "all": []}
+    for case in ("shared", "autonomous"):
+        env.reset(seed=args.seed)
+        controller.reset()
+        user = make_user("noisy", seed=0)
+        user.reset(env.user_goal())
+        obs = env._obs
+        for i in range(args.warmup + args.steps):
+            pose = env.base.tcp_pose_matrix[0].double()
+            command = user(pose)[None] if case == "shared" else None
+            observation = observation_from_env(obs)
+            start = time.perf_counter()
+            twist = controller.step(observation, command)
+            elapsed = time.perf_counter() - start
+            mode = controller.last_diagnostics.modes[0]
+            if i >= args.warmup and mode == case:
+                results[case].append(elapsed)
+                results["all"].append(elapsed)
+            obs, _, _, _, info = env.env.step(torch.cat([twist[0].float(), torch.ones(1)])[None])
+            if bool(info["success"][0]) or i % 60 == 59:  # restart the approach to stay in the timed mode
+                env.reset(seed=args.seed)
+                controller.reset()
+                user.reset(env.user_goal())
+                obs = env._obs
+    env.close()
+
+    print(f"{'case':12s} {'n':>5s} {'median ms':>10s} {'p90 ms':>8s} {'max ms':>8s}")
+    for case, values in results.items():
+        if not values:
+            print(f"{case:12s} {0:5d}  (no step in this mode)")
+            continue
+        ms = [1000 * v for v in values]
+        print(f"{case:12s} {len(ms):5d} {statistics.median(ms):10.2f} {_percentile(ms, 90):8.2f} {max(ms):8.2f}")
+    median = 1000 * statistics.median(results["all"]) if results["all"] else float("nan")
+    print(f"median SharedController.step latency: {median:.2f} ms (target <= 10 ms: {'met' if median <= 10 else 'NOT met'})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

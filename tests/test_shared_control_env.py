@@ -1,0 +1,219 @@
+"""SharedControlEnv, run_episode and the shared-control benchmark on the real GraspClutter-v1 (CPU)."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import torch
+
+import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
+from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
+from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
+from rtv3_maniskill.shared_control import make_user
+from rtv3_maniskill.shared_control.benchmark import BenchmarkConfig, BenchmarkError, run_benchmark
+from rtv3_maniskill.shared_control.env_wrapper import (
+    DirectAssistance,
+    RTV3Assistance,
+    SharedControlEnv,
+    load_rtv3_policy,
+    make_method,
+    run_episode,
+)
+from rtv3_maniskill.shared_control.shared_controller import MODES
+
+N_POINTS = 512
+MAX_LINEAR, MAX_ANGULAR = 0.3, 1.2  # the pd_ee_twist controller's limits
+
+
+@pytest.fixture(scope="module", autouse=True)
+def single_thread():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = SharedControlEnv(num_points=N_POINTS)
+    yield e
+    e.close()
+
+
+@pytest.fixture(scope="module")
+def policy():
+    torch.manual_seed(0)
+    return RTV3Policy(RTV3Config(device="cpu", num_points=N_POINTS)).eval()
+
+
+class HistorySpy:
+    """The real policy, recording whether each query advanced its observation history."""
+
+    def __init__(self, policy):
+        self.policy, self.config, self.pushes = policy, policy.config, []
+
+    def predict_step0_mixture(self, observation, update_history=True):
+        self.pushes.append(update_history)
+        return self.policy.predict_step0_mixture(observation, update_history=update_history)
+
+    def predict_action_chunk(self, observation, update_history=True):
+        self.pushes.append(update_history)
+        return self.policy.predict_action_chunk(observation, update_history=update_history)
+
+    def reset(self):
+        self.pushes = []
+        self.policy.reset()
+
+
+def _within_limits(twist: torch.Tensor) -> bool:
+    return bool(twist[:3].norm() <= MAX_LINEAR + 1e-6 and twist[3:].norm() <= MAX_ANGULAR + 1e-6)
+
+
+def test_direct_passes_the_user_twist_through(env):
+    env.method = make_method("direct")
+    env.reset(seed=2)
+    command = torch.tensor([0.08, -0.04, 0.06, 0.3, -0.2, 0.4], dtype=torch.float64)
+    realised = []
+    for _ in range(12):
+        obs, _, _, _, info = env.step(command)
+        assert torch.equal(info["robot_twist"], command)
+        assert torch.equal(info["user_twist"], command)
+        assert info["assistance_mode"] == "user_only"
+        realised.append(obs["extra"]["tcp_twist"][0])
+    # The TCP moves with the user's twist (after the first steps of acceleration).
+    np.testing.assert_allclose(torch.stack(realised[3:]).median(0).values.numpy(), command.numpy(), atol=0.01)
+
+
+def test_ho_assists_towards_the_grasp_goals(env):
+    env.method = make_method("ho")
+    env.reset(seed=5)
+    count = int(env.base.grasps_mask[0].sum())
+    assert env.method.ho.num_goals == count  # one goal per valid grasp (pre-grasp + its twin)
+    assert env.method.ho.targets.shape == (2 * count, 4, 4)
+    user = make_user("noisy", seed=1)
+    user.reset(env.user_goal())
+    for _ in range(5):
+        _, _, _, _, info = env.step(user(env.base.tcp_pose_matrix[0]))
+        twist = info["robot_twist"]
+        assert torch.isfinite(twist).all() and _within_limits(twist)
+        belief = info["assistance"]["belief"]
+        assert belief.shape == (count,) and abs(belief.sum() - 1) < 1e-9
+    # No user input: HO still moves the robot (the assistance alone).
+    _, _, _, _, info = env.step(None)
+    assert info["robot_twist"].norm() > 1e-4 and torch.equal(info["user_twist"], torch.zeros(6, dtype=torch.float64))
+
+
+def test_rtv3_shared_control_twists_and_diagnostics(env, policy):
+    spy = HistorySpy(policy)
+    env.method = RTV3Assistance(spy)
+    env.reset(seed=2)  # the TCP starts > 7 cm from every object: autonomy allowed
+    user = make_user("noisy", seed=2)
+    user.reset(env.user_goal())
+    seen = set()
+    for step in range(8):
+        before = len(spy.pushes)
+        command = None if step % 2 else user(env.base.tcp_pose_matrix[0])
+        _, _, _, _, info = env.step(command)
+        diag = info["assistance"]
+        assert diag["mode"] in MODES
+        seen.add(diag["mode"])
+        twist = info["robot_twist"]
+        assert twist.shape == (6,) and torch.isfinite(twist).all() and _within_limits(twist)
+        assert abs(diag["class_weights"].sum() - 1) < 1e-6
+        assert diag["trans_entropy_lower"] <= diag["trans_entropy_upper"]
+        assert diag["rot_entropy_lower"] <= diag["rot_entropy_upper"]
+        # The policy's observation history advances exactly once per control step.
+        assert sum(spy.pushes[before:]) == 1, spy.pushes[before:]
+    assert "autonomous" in seen and "shared" in seen, seen
+
+
+def test_run_episode_ideal_user_direct_reaches_the_pregrasp(env):
+    # The highest pre-grasp of the scene: a clear approach from the start pose.
+    env.reset(seed=5)
+    base = env.base
+    count = int(base.grasps_mask[0].sum())
+    offset = torch.eye(4)
+    offset[2, 3] = -0.05
+    target = int((base.grasp_poses[0, :count] @ offset)[:, 2, 3].argmax())
+    result = run_episode(env, DirectAssistance(), make_user("ideal"), max_steps=150, seed=5,
+                         options=dict(target_grasp_index=target))
+    assert result.success, f"final distance {result.final_distance:.3f}"
+    assert 0 < result.steps < 150 and result.final_distance < 0.1
+    assert result.trajectory.shape == (result.steps + 1, 4, 4) and len(result.diagnostics) == result.steps
+    assert int(base.target_grasp_index[0]) == target
+    # The same seed reloads the same scene and start: the episode is reproducible.
+    again = run_episode(env, DirectAssistance(), make_user("ideal"), max_steps=150, seed=5,
+                        options=dict(target_grasp_index=target))
+    assert again.steps == result.steps
+    np.testing.assert_allclose(again.trajectory, result.trajectory, atol=1e-5)
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_benchmark_writes_results_and_resumes_without_duplicates(tmp_path):
+    config = BenchmarkConfig(output=tmp_path, scenes=1, users=["noisy"], methods=["direct", "ho"], seed=3,
+                             max_grasps_per_scene=1, max_steps=40)
+    summary = run_benchmark(config, progress=False)
+    rows = _rows(tmp_path / "results.csv")
+    assert [r["method"] for r in rows] == ["direct", "ho"]
+    assert len({(r["scene_seed"], r["grasp_index"], r["user"], r["method"]) for r in rows}) == 2
+    assert [(s["user"], s["method"], s["trials"]) for s in summary] == [("noisy", "direct", 1), ("noisy", "ho", 1)]
+    for name in ("summary.csv", "summary.md", "success_rates.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert "| noisy | HO | 1 |" in (tmp_path / "summary.md").read_text()
+
+    # Simulate an interrupted run: the last trial's row is missing. The rerun adds only it.
+    lines = (tmp_path / "results.csv").read_text().splitlines(keepends=True)
+    (tmp_path / "results.csv").write_text("".join(lines[:-1]))
+    run_benchmark(config, progress=False)
+    again = _rows(tmp_path / "results.csv")
+    assert [(r["grasp_index"], r["method"]) for r in again] == [(r["grasp_index"], r["method"]) for r in rows]
+    assert again[-1]["success"] == rows[-1]["success"] and again[-1]["steps"] == rows[-1]["steps"]
+    run_benchmark(config, progress=False)  # nothing left to do
+    assert len(_rows(tmp_path / "results.csv")) == 2
+
+    changed = BenchmarkConfig(output=tmp_path, scenes=1, users=["noisy"], methods=["direct"], seed=3,
+                              max_grasps_per_scene=1, max_steps=60)
+    with pytest.raises(BenchmarkError, match="other settings"):
+        run_benchmark(changed, progress=False)
+
+
+def test_bad_inputs_give_clear_errors(env, policy, tmp_path):
+    with pytest.raises(ValueError, match="unknown simulated user"):
+        make_user("telepath")
+    with pytest.raises(ValueError, match="unknown assistance method"):
+        make_method("teleport")
+    with pytest.raises(ValueError, match="needs a policy"):
+        make_method("rtv3")
+    with pytest.raises(BenchmarkError, match="unknown simulated user 'telepath'"):
+        BenchmarkConfig(output=tmp_path, users=["telepath"])
+    with pytest.raises(BenchmarkError, match="unknown assistance method 'teleport'"):
+        BenchmarkConfig(output=tmp_path, methods=["direct", "teleport"])
+    with pytest.raises(FileNotFoundError, match="--policy.path"):
+        load_rtv3_policy(tmp_path)
+
+    env.method = make_method("direct")
+    env.reset(seed=2)
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(torch.tensor([0.1, float("nan"), 0, 0, 0, 0]))
+    with pytest.raises(ValueError, match="shape"):
+        env.step(torch.zeros(7))
+    # A policy made for another cloud size than the env's.
+    other = RTV3Policy(RTV3Config(device="cpu", num_points=256))
+    env.method = make_method("rtv3", policy=other)
+    with pytest.raises(ValueError, match="num_points"):
+        env.reset(seed=2)
+
+
+def test_cli_reports_bad_options_and_missing_checkpoint(tmp_path):
+    from rtv3_maniskill.cli import main
+
+    with pytest.raises(SystemExit, match="unknown simulated user 'telepath'"):
+        main(["benchmark-shared", "--users", "noisy,telepath", "--output", str(tmp_path / "b")])
+    with pytest.raises(SystemExit, match="no RT-V3 checkpoint"):
+        main(["demo", "--policy.path", str(tmp_path / "missing"), "--output", str(tmp_path / "d")])
