@@ -34,7 +34,8 @@ FAILURE_REASONS = (
     "infeasible_target",  # no collision-free IK for the pre-grasp or the grasp: not a planner failure
     "planning_failed",
     "collision",
-    "disturbed_scene",
+    "disturbed_target",  # the target object moved > 2 cm (pushed during the approach)
+    "disturbed_scene",  # another object moved > 5 mm
     "joint_limit",
     "missed_pregrasp",
     "no_start_pose",
@@ -193,7 +194,9 @@ class DemonstrationRecorder:
             closest_to_pregrasp = min(closest_to_pregrasp, float((tcp[:3, 3] - pregrasp_t[:3, 3]).norm()))
         for j, (actor, start) in enumerate(zip(self.base.objects[0], object_poses_start)):
             moved = float((actor.pose.raw_pose[0, :3] - start[0, :3]).norm())
-            if moved > (0.02 if j == target_object else 0.005):
+            if j == target_object and moved > 0.02:
+                return "disturbed_target"
+            if j != target_object and moved > 0.005:
                 return "disturbed_scene"
         if closest_to_pregrasp > PREGRASP_POSITION_TOLERANCE:
             return "missed_pregrasp"

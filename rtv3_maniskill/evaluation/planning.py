@@ -54,6 +54,8 @@ PLANNING_MAX_STEPS = 150
 PREGRASP_DISTANCE = 0.05
 """m back along the grasp's approach (z) axis; equals ``tasks.grasp_clutter.PREGRASP_DISTANCE``."""
 SCENE_SEED_STRIDE = 100000
+MAX_GRASPS_GUESS = 16
+"""Progress-bar estimate of the targets per scene when every grasp is a target."""
 OUTCOMES = ("success", "collision", "timeout")
 NO_START_POSE = "no_start_pose"
 CONTEXT_MODES = ("target", "all")
@@ -270,8 +272,10 @@ class SceneIndex:
 
     def add(self, scene_seed: int, valid: Sequence[int]) -> None:
         self.valid[int(scene_seed)] = [int(g) for g in valid]
+        torn = self.path.exists() and self.path.stat().st_size > 0 and not self.path.read_bytes().endswith(b"\n")
         with open(self.path, "a") as f:
-            f.write("\n" + json.dumps(dict(scene_seed=int(scene_seed), valid_grasps=self.valid[int(scene_seed)])) + "\n")
+            record = json.dumps(dict(scene_seed=int(scene_seed), valid_grasps=self.valid[int(scene_seed)]))
+            f.write(("\n" if torn else "") + record + "\n")
             f.flush()
             os.fsync(f.fileno())
 
@@ -442,7 +446,8 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
     scene_index = SceneIndex(output / "planning_scenes.jsonl")
     bench = PlanningBenchmark(config, policy)
     keys: list[tuple[int, int]] = []
-    bar = tqdm(total=0, unit="trial", desc="planning", disable=not progress, dynamic_ncols=True)
+    per_scene = config.max_grasps_per_scene or MAX_GRASPS_GUESS
+    bar = tqdm(total=config.scenes * per_scene, unit="trial", desc="planning", disable=not progress, dynamic_ncols=True)
     try:
         for scene_seed in scene_seeds(config.seed, config.scenes):
             valid = scene_index.get(scene_seed)
@@ -450,7 +455,7 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
                 valid = bench.load_scene(scene_seed)
                 scene_index.add(scene_seed, valid)
             targets = select_targets(valid, config.max_grasps_per_scene, config.seed, scene_seed)
-            bar.total += len(targets)
+            bar.total += len(targets) - per_scene  # the estimate made before the scene was known
             bar.refresh()
             for g in targets:
                 keys.append((scene_seed, g))

@@ -194,7 +194,8 @@ class GraspClutterEnv(BaseEnv):
         for _ in range(20):
             scene_type = self.scene_type if self.scene_type != "mixed" else SCENE_TYPES[int(rng.integers(2))]
             layout = generate_layout(self.object_set, rng, scene_type, self.num_objects)
-            grasp_set = sample_grasps(layout, rng, max_grasps=self.max_grasps)
+            # The gripper stays fully open (0.08 m): check hand collisions at that opening.
+            grasp_set = sample_grasps(layout, rng, max_grasps=self.max_grasps, finger_clearance=0.04)
             if len(grasp_set.scores) > 0:
                 return layout, grasp_set
         raise RuntimeError("no graspable clutter scene found in 20 layouts; check the object set")

@@ -103,6 +103,9 @@ class _SettleScene:
         add_collision_shapes(builder, obj.shapes, self.material, obj.density)
         actor = builder.build(obj.name)
         actor.set_pose(matrix_to_sapien_pose(pose))
+        # No sleeping: a body put to sleep in a marginal pose would pass the rest checks here and
+        # then slide once the task wakes it up.
+        actor.find_component_by_type(sapien.physx.PhysxRigidDynamicComponent).set_sleep_threshold(0.0)
         self.actors.append(actor)
         return actor
 
