@@ -102,7 +102,8 @@ class RTV3ClutterEnvConfig(EnvConfig):
     episode_length: int = 150
     scene_type: str = "mixed"
     object_source: str = "procedural"
-    num_points: int = F.DEFAULT_NUM_POINTS
+    num_points: int = 512
+    """Must equal the policy's ``num_points`` (the shipped checkpoint and `rtv3 generate` use 512)."""
     max_grasps: int = F.DEFAULT_MAX_GRASPS
     features: dict[str, PolicyFeature] = field(default_factory=dict)
     features_map: dict[str, str] = field(

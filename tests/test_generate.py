@@ -152,3 +152,14 @@ def test_lerobot_train_on_generated_dataset(tiny_dataset, tmp_path):
     checkpoint = out / "checkpoints" / "last" / "pretrained_model"
     policy = RTV3Policy.from_pretrained(checkpoint)
     assert policy.config.num_points == 256 and policy.config.max_grasps == 16
+
+    # ... and `lerobot-eval` runs it in GraspClutter-v1 through the `rtv3_clutter` env config.
+    lerobot_eval = Path(sys.executable).parent / "lerobot-eval"
+    cmd = [
+        str(lerobot_eval), f"--policy.path={checkpoint}", "--env.type=rtv3_clutter", "--env.num_points=256",
+        "--env.max_grasps=16", "--env.episode_length=5", "--eval.n_episodes=1", "--eval.batch_size=1",
+        "--policy.device=cpu", f"--output_dir={tmp_path / 'eval'}",
+    ]
+    result = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, OMP_NUM_THREADS="1"), timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "pc_success" in result.stdout + result.stderr

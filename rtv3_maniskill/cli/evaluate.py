@@ -101,10 +101,10 @@ def _run_planning(args: argparse.Namespace) -> int:
         summary = run_planning_benchmark(config)
     except (FileNotFoundError, ValueError) as err:
         raise SystemExit(f"error: {err}") from None
-    print(
-        f"{summary['trials']} trials ({summary['no_start_pose']} without a start pose left out): "
-        f"SR {100 * summary['SR']:.1f} %  CR {100 * summary['CR']:.1f} %  TOR {100 * summary['TOR']:.1f} %"
+    rates = "  ".join(
+        f"{k} {'n/a' if summary[k] is None else f'{100 * summary[k]:.1f} %'}" for k in ("SR", "CR", "TOR")
     )
+    print(f"{summary['trials']} trials ({summary['no_start_pose']} without a start pose left out): {rates}")
     print(json.dumps({k: summary[k] for k in ("success", "collision", "timeout", "mean_steps_success")}))
     print(f"wrote {config.output / 'planning_trials.csv'} and {config.output / 'planning_summary.json'}")
     return 0

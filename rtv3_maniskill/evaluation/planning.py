@@ -46,13 +46,12 @@ import torch
 
 from rtv3_maniskill import features as ft
 from rtv3_maniskill import se3
+from rtv3_maniskill.tasks.grasp_clutter import PREGRASP_DISTANCE
 
 PLANNING_SUCCESS_THRESHOLD = 0.2
 """Pose distance (m + (0.3/pi) rad, L1) below which a pre-grasp counts as reached (NOTES.md)."""
 PLANNING_MAX_STEPS = 150
 """7.5 s at 20 Hz."""
-PREGRASP_DISTANCE = 0.05
-"""m back along the grasp's approach (z) axis; equals ``tasks.grasp_clutter.PREGRASP_DISTANCE``."""
 SCENE_SEED_STRIDE = 100000
 MAX_GRASPS_GUESS = 16
 """Progress-bar estimate of the targets per scene when every grasp is a target."""
@@ -63,7 +62,7 @@ POINT_CLOUD_SOURCES = ("rendered", "mesh")
 GRIPPER_OPEN = 1.0
 """Normalised gripper command of ``pd_ee_twist`` (the Panda's ``pd_joint_pos`` gripper): open."""
 TRIAL_FIELDS = (
-    "scene_seed", "grasp_index", "outcome", "steps", "final_distance", "min_distance",
+    "scene_seed", "grasp_index", "outcome", "steps", "start_distance", "final_distance", "min_distance",
     "reached_grasp", "context_grasps", "start_attempts", "wall_time_s",
 )
 PAPER_TABLE1_FULL = {"SR": 0.904, "CR": 0.079, "TOR": 0.017}
@@ -86,7 +85,10 @@ def planning_distance(tcp_pose: torch.Tensor, grasp_poses: torch.Tensor) -> torc
     the smaller of the pre-grasp and its pi-about-z twin (parallel-jaw symmetry).
     """
     if tcp_pose.shape[-2:] != (4, 4) or grasp_poses.ndim < 3 or grasp_poses.shape[-2:] != (4, 4):
-        raise ValueError(f"need tcp_pose (..., 4, 4) and grasp_poses (..., M, 4, 4), got {tuple(tcp_pose.shape)}, {tuple(grasp_poses.shape)}")
+        raise ValueError(
+            f"need tcp_pose (..., 4, 4) and grasp_poses (..., M, 4, 4), "
+            f"got {tuple(tcp_pose.shape)}, {tuple(grasp_poses.shape)}"
+        )
     target = pregrasp_poses(grasp_poses)
     tcp = tcp_pose[..., None, :, :].to(target.dtype)
     d = se3.pose_distance(target, tcp, se3.PLANNING_ROT_WEIGHT)
@@ -188,7 +190,14 @@ class TrialsFile:
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         self.rows: dict[tuple[int, int], dict[str, str]] = {}
-        if self.path.exists():
+        if self.path.exists() and self.path.stat().st_size > 0:
+            with open(self.path, newline="") as f:
+                header = next(csv.reader(f), [])
+            if tuple(header) != TRIAL_FIELDS:
+                raise ValueError(
+                    f"{self.path} has the columns {header}, expected {list(TRIAL_FIELDS)} "
+                    "(written by another version?): use another --output folder"
+                )
             for row in read_trials(self.path):
                 self.rows[(int(row["scene_seed"]), int(row["grasp_index"]))] = row
         new = not self.path.exists() or self.path.stat().st_size == 0
@@ -222,7 +231,9 @@ def read_trials(path: Path) -> list[dict[str, str]]:
     rows = []
     with open(path, newline="") as f:
         for row in csv.DictReader(f):
-            if any(row.get(k) in (None, "") for k in ("scene_seed", "grasp_index", "outcome", "steps")):
+            if None in row or None in row.values():  # torn line: missing or extra fields
+                continue
+            if any(row[k] == "" for k in ("scene_seed", "grasp_index", "outcome", "steps", "wall_time_s")):
                 continue
             if row["outcome"] not in (*OUTCOMES, NO_START_POSE):
                 continue
@@ -235,12 +246,12 @@ def read_trials(path: Path) -> list[dict[str, str]]:
 
 
 def summarize(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
-    """SR / CR / TOR over the trials with a start pose, their counts, mean steps of successes."""
+    """SR / CR / TOR over the trials with a start pose (None without any), their counts, mean steps of successes."""
     rows = list(rows)
     counts = {o: sum(1 for r in rows if r["outcome"] == o) for o in OUTCOMES}
     trials = sum(counts.values())
     success_steps = [int(r["steps"]) for r in rows if r["outcome"] == "success"]
-    rate = (lambda k: counts[k] / trials) if trials else (lambda k: float("nan"))
+    rate = (lambda k: counts[k] / trials) if trials else (lambda k: None)
     return dict(
         trials=trials,
         **{k: v for k, v in counts.items()},
@@ -285,7 +296,8 @@ def _check_config(output: Path, fingerprint: dict[str, Any]) -> None:
     if path.exists():
         existing = json.loads(path.read_text())
         if existing != fingerprint:
-            diff = {k: (existing.get(k), fingerprint.get(k)) for k in set(existing) | set(fingerprint) if existing.get(k) != fingerprint.get(k)}
+            keys = set(existing) | set(fingerprint)
+            diff = {k: (existing.get(k), fingerprint.get(k)) for k in keys if existing.get(k) != fingerprint.get(k)}
             raise ValueError(
                 f"{output} holds planning trials run with other settings {diff} (existing, requested); "
                 "use another --output folder or the same settings to resume"
@@ -346,8 +358,9 @@ class PlanningBenchmark:
         self._cloud = None
         if self.config.point_cloud == "rendered":
             if not self.base.scene.can_render():
-                raise RuntimeError(
-                    "the scene cannot render, so there is no depth-camera point cloud; use --point-cloud mesh "
+                raise ValueError(
+                    "--point-cloud rendered: the scene cannot render, so there is no depth-camera point cloud; "
+                    "use --point-cloud mesh "
                     "(only if the policy was trained on mesh clouds) or set up a Vulkan driver (STACK.md)"
                 )
             self._cloud = self.base.capture_point_cloud()
@@ -371,7 +384,8 @@ class PlanningBenchmark:
         rng = np.random.default_rng([self.config.seed, int(self.scene_seed), grasp])
         for attempt in range(1, self.config.start_pose_attempts + 1):
             pose = random_start_pose(rng)
-            if bool(is_planning_success(planning_distance(torch.as_tensor(pose), context_poses).min(), self.config.threshold)):
+            start_distance = planning_distance(torch.as_tensor(pose), context_poses).min()
+            if bool(is_planning_success(start_distance, self.config.threshold)):
                 continue
             q = self.planner.solve_ik(pose, seed=int(self.scene_seed) * 31 + grasp * 1009 + attempt)
             if q is not None:
@@ -391,7 +405,7 @@ class PlanningBenchmark:
         context_poses = self.base.grasp_poses[0, context_indices].double()
         row: dict[str, Any] = dict(
             scene_seed=int(self.scene_seed), grasp_index=grasp, context_grasps=int(len(context_indices)),
-            reached_grasp=-1, final_distance="", min_distance="",
+            reached_grasp=-1, start_distance="", final_distance="", min_distance="",
         )
         q_start, attempts = self.start_configuration(grasp, context_poses)
         row["start_attempts"] = attempts
@@ -400,6 +414,7 @@ class PlanningBenchmark:
             return row
         obs, _ = self.env.reset(options=dict(reconfigure=False, init_qpos=q_start, target_grasp_index=grasp))
         self.policy.reset()
+        row["start_distance"] = f"{float(planning_distance(self.base.tcp_pose_matrix[0].double(), context_poses).min()):.4f}"
         outcome, steps, min_distance, distances = "timeout", self.config.max_steps, math.inf, None
         for step in range(1, self.config.max_steps + 1):
             twist = self.policy.select_action(self._observation(obs, grasp))
@@ -407,7 +422,8 @@ class PlanningBenchmark:
             obs, _, _, _, info = self.env.step(command)
             distances = planning_distance(self.base.tcp_pose_matrix[0].double(), context_poses)
             min_distance = min(min_distance, float(distances.min()))
-            decided = trial_outcome(bool(info["collision"][0]), bool(is_planning_success(distances.min(), self.config.threshold)))
+            reached = bool(is_planning_success(distances.min(), self.config.threshold))
+            decided = trial_outcome(collision=bool(info["collision"][0]), success=reached)
             if decided is not None:
                 outcome, steps = decided, step
                 if decided == "success":
@@ -465,8 +481,8 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
                     trials.append(bench.run_trial(g))
                 bar.update(1)
                 stats = summarize(trials.rows[k] for k in keys)
-                if stats["trials"]:
-                    bar.set_postfix(SR=f"{100 * stats['SR']:.0f}%", CR=f"{100 * stats['CR']:.0f}%", TOR=f"{100 * stats['TOR']:.0f}%")
+                if stats["trials"]:  # rates exist
+                    bar.set_postfix({k: f"{100 * stats[k]:.0f}%" for k in ("SR", "CR", "TOR")})
     finally:
         bar.close()
         trials.close()
@@ -474,7 +490,7 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
     summary = summarize(trials.rows[k] for k in keys)
     summary.update(
         scenes=config.scenes,
-        scene_seeds=[scene_seeds(config.seed, config.scenes)[0], scene_seeds(config.seed, config.scenes)[-1]],
+        scene_seed_range=[config.seed * SCENE_SEED_STRIDE, config.seed * SCENE_SEED_STRIDE + config.scenes - 1],
         max_grasps_per_scene=config.max_grasps_per_scene,
         settings=config.fingerprint(),
         success_rule=f"pose distance (rot weight 0.3/pi) to a context grasp's pre-grasp or its twin < {config.threshold}",

@@ -210,7 +210,8 @@ def load_episodes(
     scene_of = np.asarray(table["scene_seed"]).reshape(-1)
     states = np.asarray(table[ft.STATE], dtype=np.float64)
     chosen = set(select_scene_seeds(scene_of.tolist(), seed_range, last_fraction, all_scenes))
-    context_columns = hf.select_columns([ft.POINT_CLOUD, ft.POINT_CLOUD_MASK, ft.GRASPS, ft.GRASPS_MASK]).with_format("numpy")
+    context_keys = [ft.POINT_CLOUD, ft.POINT_CLOUD_MASK, ft.GRASPS, ft.GRASPS_MASK]
+    context_columns = hf.select_columns(context_keys).with_format("numpy")
     episodes = []
     for ep in np.unique(episode_of):
         rows = np.flatnonzero(episode_of == ep)
