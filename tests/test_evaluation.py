@@ -275,3 +275,28 @@ def test_a_controller_that_reaches_the_pregrasp_counts_as_success(tmp_path):
     assert summary["success"] == 1 and row["outcome"] == "success", row
     assert int(row["reached_grasp"]) == int(row["grasp_index"]) and float(row["final_distance"]) < 0.2
     assert int(row["steps"]) < 150
+
+
+def test_trials_file_survives_a_torn_last_line_and_summary_leaves_out_missing_starts(tmp_path):
+    path = tmp_path / "planning_trials.csv"
+    trials = planning.TrialsFile(path)
+    base = dict(start_distance="0.5", final_distance="0.1", min_distance="0.1", reached_grasp=2, context_grasps=1,
+                start_attempts=1, wall_time_s="1.0")
+    trials.append(dict(base, scene_seed=7, grasp_index=2, outcome="success", steps=40))
+    trials.append(dict(base, scene_seed=7, grasp_index=3, outcome="no_start_pose", steps=0))
+    trials.close()
+    with open(path, "a") as f:
+        f.write("7,4,collis")  # killed mid-write
+    resumed = planning.TrialsFile(path)
+    assert set(resumed.rows) == {(7, 2), (7, 3)}
+    resumed.append(dict(base, scene_seed=7, grasp_index=4, outcome="timeout", steps=150))
+    resumed.close()
+    rows = planning.read_trials(path)
+    assert [(int(r["grasp_index"]), r["outcome"]) for r in rows] == [(2, "success"), (3, "no_start_pose"), (4, "timeout")]
+    summary = planning.summarize(rows)
+    assert summary["trials"] == 2 and summary["no_start_pose"] == 1
+    assert (summary["SR"], summary["CR"], summary["TOR"]) == (0.5, 0.0, 0.5)
+    assert summary["mean_steps_success"] == 40.0
+    path.write_text("scene,grasp\n1,2\n")
+    with pytest.raises(ValueError, match="columns"):
+        planning.TrialsFile(path)

@@ -68,16 +68,12 @@ def add_collision_shapes(builder, shapes: list[CollisionShape], material=None, d
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
-    q = rng.normal(size=4)
-    q /= np.linalg.norm(q)
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    """A uniformly random rotation matrix (normalised Gaussian quaternion)."""
+    import torch
+
+    from rtv3_maniskill.se3 import quat_to_matrix
+
+    return quat_to_matrix(torch.as_tensor(rng.normal(size=4))).numpy()
 
 
 def _yaw(angle: float) -> np.ndarray:
