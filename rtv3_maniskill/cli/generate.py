@@ -27,6 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--context", default="rendered", choices=["rendered", "mesh"],
                         help="scene point cloud from the depth camera (rendered once per scene) or mesh samples")
     parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")
+    parser.add_argument("--export-only", action="store_true",
+                        help="only (re)build the LeRobot dataset from the episodes finished so far")
 
 
 def _validate(args: argparse.Namespace) -> None:
@@ -130,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
     staging = StagingArea(args.output)
     attempted = staging.attempts()
     scenes = [args.seed * 100000 + i for i in range(args.num_scenes)]
+    if args.export_only:
+        scenes = []
     jobs = [(s, sorted(k for k in attempted if k.startswith(StagingArea.key(s, 0)[:13]))) for s in scenes]
     if attempted:
         print(f"resuming: {len(attempted)} grasp targets already attempted in {args.output}")
@@ -138,7 +142,9 @@ def run(args: argparse.Namespace) -> int:
     frames, seconds = 0, 0.0
     start = time.perf_counter()
     bar = tqdm(total=len(jobs), desc="scenes", unit="scene")
-    if args.workers == 1:
+    if not jobs:
+        results = iter(())
+    elif args.workers == 1:
         _init_worker(args_dict)
         results = map(_run_scene, jobs)
     else:
@@ -151,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
         bar.update(1)
         bar.set_postfix(ok=total["success"], failed=sum(v for k, v in total.items() if k != "success"))
     bar.close()
-    if args.workers > 1:
+    if jobs and args.workers > 1:
         pool.close()
         pool.join()
     wall = time.perf_counter() - start
@@ -162,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
     ok = outcome_counts.get("success", 0)
     data_bytes = sum(p.stat().st_size for p in (args.output / "data").rglob("*") if p.is_file())
     summary = dict(
-        scenes=len(scenes),
+        scenes=len({r["scene"] for r in all_attempts.values()}),
         grasp_targets_attempted=len(all_attempts),
         trajectories=ok,
         failures=dict((k, v) for k, v in outcome_counts.items() if k != "success"),
