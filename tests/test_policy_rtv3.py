@@ -528,6 +528,7 @@ def _write_dataset(root, cfg: RTV3Config, episodes: int = 2, frames: int = 24):
         ft.GRASPS: {"dtype": "float32", "shape": (m, ft.GRASP_DIM), "names": None},
         ft.GRASPS_MASK: {"dtype": "float32", "shape": (m,), "names": None},
         ft.ACTION: {"dtype": "float32", "shape": (6,), "names": None},
+        ft.TARGET_GRASP: {"dtype": "int64", "shape": (1,), "names": None},
     }
     dataset = LeRobotDataset.create("local/rtv3_test", fps=ft.FPS, features=features, root=root, use_videos=False)
     long_cfg = RTV3Config(device="cpu", num_points=n, max_grasps=m, n_obs_steps=1, horizon=frames)
@@ -548,6 +549,7 @@ def _write_dataset(root, cfg: RTV3Config, episodes: int = 2, frames: int = 24):
                     ft.GRASPS: ep[ft.GRASPS][0, 0],
                     ft.GRASPS_MASK: ep[ft.GRASPS_MASK][0, 0],
                     ft.ACTION: ep[ft.ACTION][0, t],
+                    ft.TARGET_GRASP: torch.zeros(1, dtype=torch.int64),
                     "task": "grasp",
                 }
             )
@@ -582,7 +584,10 @@ def test_lerobot_dataset_factory_and_processors_train(tmp_path):
     optimizer = cfg.get_optimizer_preset().build(policy.get_optim_params())
     policy.train()
     for _, raw in zip(range(3), loader):
-        loss, _ = policy.forward(preprocessor(raw))
+        batch = preprocessor(raw)
+        # the privileged target index reaches the policy (grasp-subset augmentation)
+        assert torch.equal(batch[ft.TARGET_GRASP], raw[ft.TARGET_GRASP])
+        loss, _ = policy.forward(batch)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()

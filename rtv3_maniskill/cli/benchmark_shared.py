@@ -32,8 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-steps", type=int, default=150, help="control steps per trial (20 Hz)")
     parser.add_argument("--obs-mode", default="state_dict", choices=["state_dict", "pointcloud"],
                         help="state_dict: mesh-sampled scene cloud; pointcloud: depth camera rendered every step")
-    parser.add_argument("--rendered-context", action="store_true",
-                        help="state_dict mode: render the scene cloud once per scene (as `rtv3 generate --context rendered`)")
+    parser.add_argument("--mesh-context", action="store_true",
+                        help="state_dict mode: use the mesh-sampled scene cloud instead of rendering it once per "
+                             "scene from the depth camera (the default, as `rtv3 generate` stores it)")
     parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
     parser.add_argument("--ho-variant", default="rtv3_authors", choices=["rtv3_authors", "javdani2018"],
                         help="HO constants: the RT-V3 authors' translation-only baseline or the original ones")
@@ -49,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
         config = BenchmarkConfig(
             output=args.output, policy_path=args.policy_path, scenes=args.scenes, users=users, methods=methods,
             seed=args.seed, max_grasps_per_scene=args.max_grasps_per_scene, max_steps=args.max_steps,
-            obs_mode=args.obs_mode, rendered_context=args.rendered_context, scene_type=args.scene_type,
+            obs_mode=args.obs_mode, rendered_context=not args.mesh_context, scene_type=args.scene_type,
             ho_variant=args.ho_variant,
         )
         summary = run_benchmark(config, progress=not args.no_progress)

@@ -42,7 +42,8 @@ def _make_env(want_video: bool, env_kwargs: dict[str, Any]):
     if want_video:
         env = None
         try:
-            env = SharedControlEnv(render_mode="rgb_array", **env_kwargs)
+            # The scene cloud comes from the depth camera, as in the training data (`rtv3 generate`).
+            env = SharedControlEnv(render_mode="rgb_array", rendered_context=True, **env_kwargs)
             env.reset(seed=0)
             env.render()
             return env, True
@@ -52,8 +53,8 @@ def _make_env(want_video: bool, env_kwargs: dict[str, Any]):
             if env is not None:
                 env.close()
     try:
-        return SharedControlEnv(**env_kwargs), False
-    except Exception:  # noqa: BLE001  (no render device at all: physics only)
+        return SharedControlEnv(rendered_context=True, **env_kwargs), False
+    except Exception:  # noqa: BLE001  (no render device at all: physics only, mesh-sampled cloud)
         return SharedControlEnv(render_backend="none", **env_kwargs), False
 
 

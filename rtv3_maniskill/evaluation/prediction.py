@@ -201,11 +201,11 @@ def load_episodes(
         raise FileNotFoundError(f"no LeRobot dataset at {root} (missing meta/info.json); make one with `rtv3 generate`")
     dataset = LeRobotDataset(REPO_ID, root=root)
     hf = dataset.hf_dataset
-    needed = [ft.STATE, "episode_index", "scene_seed", ft.POINT_CLOUD, ft.GRASPS]
+    needed = [ft.STATE, "episode_index", "index", "scene_seed", ft.POINT_CLOUD, ft.GRASPS]
     missing = [k for k in needed if k not in hf.column_names]
     if missing:
         raise ValueError(f"dataset at {root} lacks the columns {missing} (not an `rtv3 generate` dataset?)")
-    table = hf.select_columns([ft.STATE, "episode_index", "scene_seed"]).with_format("numpy")[:]
+    table = hf.select_columns([ft.STATE, "episode_index", "scene_seed", "index"]).with_format("numpy")[:]
     episode_of = np.asarray(table["episode_index"]).reshape(-1)
     scene_of = np.asarray(table["scene_seed"]).reshape(-1)
     states = np.asarray(table[ft.STATE], dtype=np.float64)
@@ -213,12 +213,12 @@ def load_episodes(
     context_keys = [ft.POINT_CLOUD, ft.POINT_CLOUD_MASK, ft.GRASPS, ft.GRASPS_MASK]
     context_columns = hf.select_columns(context_keys).with_format("numpy")
     episodes = []
-    for ep in np.unique(episode_of):
-        rows = np.flatnonzero(episode_of == ep)
+    order = np.lexsort((np.asarray(table["index"]).reshape(-1), episode_of))  # grouped by episode, in frame order
+    ids, starts = np.unique(episode_of[order], return_index=True)
+    for ep, rows in zip(ids, np.split(order, starts[1:])):
         scene = int(scene_of[rows[0]])
         if scene not in chosen:
             continue
-        rows = rows[np.argsort(rows)]
         context = context_columns[int(rows[0])]
         episodes.append(
             EpisodeData(

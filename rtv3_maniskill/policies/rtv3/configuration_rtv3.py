@@ -134,6 +134,10 @@ class RTV3Config(PreTrainedConfig):
     grasp_feedforward_dim: int = 256
     grasp_input_position: bool = True
     min_grasp_score: float = 0.0
+    grasp_subset_min: int = 1
+    """Training augmentation (NOTES.md): each sample keeps a random subset of grasp candidates of size
+    grasp_subset_min..all, always with the target. The authors use 10; 1 also covers the planning
+    benchmark, which shows the policy only its target grasp."""
 
     # Point cloud encoder (PTv3-style).
     use_point_encoder: bool = True
@@ -186,6 +190,7 @@ class RTV3Config(PreTrainedConfig):
             "n_action_steps": self.n_action_steps,
             "num_points": self.num_points,
             "max_grasps": self.max_grasps,
+            "grasp_subset_min": self.grasp_subset_min,
             "num_maneuver_classes": self.num_maneuver_classes,
             "prior_hidden_dim": self.prior_hidden_dim,
             "decoder_hidden_dim": self.decoder_hidden_dim,

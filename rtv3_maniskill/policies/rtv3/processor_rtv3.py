@@ -20,7 +20,14 @@ from lerobot.processor import (
     RenameObservationsProcessorStep,
     UnnormalizerProcessorStep,
 )
-from lerobot.processor.converters import policy_action_to_transition, transition_to_policy_action
+from lerobot.processor.converters import (
+    batch_to_transition,
+    policy_action_to_transition,
+    transition_to_policy_action,
+)
+from lerobot.processor.core import TransitionKey
+
+from rtv3_maniskill.features import TARGET_GRASP
 from lerobot.utils.constants import POLICY_POSTPROCESSOR_DEFAULT_NAME, POLICY_PREPROCESSOR_DEFAULT_NAME
 
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
@@ -54,7 +61,7 @@ def make_rtv3_pre_post_processors(
     ]
     return (
         PolicyProcessorPipeline[dict[str, Any], dict[str, Any]](
-            steps=input_steps, name=POLICY_PREPROCESSOR_DEFAULT_NAME
+            steps=input_steps, name=POLICY_PREPROCESSOR_DEFAULT_NAME, to_transition=batch_to_rtv3_transition
         ),
         PolicyProcessorPipeline[PolicyAction, PolicyAction](
             steps=output_steps,
@@ -63,3 +70,19 @@ def make_rtv3_pre_post_processors(
             to_output=transition_to_policy_action,
         ),
     )
+
+
+def batch_to_rtv3_transition(batch: dict[str, Any]):
+    """LeRobot's ``batch_to_transition`` that also carries ``target_grasp_index`` through.
+
+    The dataset's target index is privileged training information: the policy never reads
+    it as an input, but training needs it for the grasp-subset augmentation (NOTES.md: keep a
+    random subset of the candidates, always with the target). LeRobot's default converter
+    keeps only ``observation.*``, ``action`` and a few bookkeeping keys.
+    """
+    transition = batch_to_transition(batch)
+    if TARGET_GRASP in batch:
+        extra = dict(transition.get(TransitionKey.COMPLEMENTARY_DATA) or {})
+        extra[TARGET_GRASP] = batch[TARGET_GRASP]
+        transition[TransitionKey.COMPLEMENTARY_DATA] = extra
+    return transition
