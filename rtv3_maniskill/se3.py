@@ -232,6 +232,21 @@ def pose_distance(
     return err[..., :3, 3].abs().sum(-1) + rot_weight * matrix_to_euler_xyz(err[..., :3, :3]).abs().sum(-1)
 
 
+def translate_along_z(transform: torch.Tensor, distance: float) -> torch.Tensor:
+    """Move ``(..., 4, 4)`` poses by ``distance`` along their own z axis (``T @ Trans(0, 0, d)``);
+    a grasp's pre-grasp is ``translate_along_z(grasp, -0.05)``."""
+    out = transform.clone()
+    out[..., :3, 3] = transform[..., :3, 3] + distance * transform[..., :3, 2]
+    return out
+
+
+def symmetric_pose_distance(target: torch.Tensor, pose: torch.Tensor, rot_weight: float) -> torch.Tensor:
+    """:func:`pose_distance` to ``target`` or its pi-about-z twin, whichever is smaller
+    (a parallel-jaw grasp and its twin are the same grasp)."""
+    d = pose_distance(target, pose, rot_weight)
+    return torch.minimum(d, pose_distance(rotate_about_z(target, math.pi), pose, rot_weight))
+
+
 def rotate_about_z(transform: torch.Tensor, angle: float) -> torch.Tensor:
     """Right-multiply ``(..., 4, 4)`` by a rotation of ``angle`` about the local z axis."""
     rz = torch.tensor(

@@ -155,8 +155,7 @@ class DemonstrationRecorder:
             return "no_start_pose"
         # Parallel-jaw symmetry: aim for the twin closer to the start orientation (NOTES.md).
         grasp = canonicalize_symmetric(grasp_set.poses[grasp_index : grasp_index + 1], self.planner.forward_kinematics(q_start))[0]
-        pregrasp = grasp.copy()
-        pregrasp[:3, 3] -= PREGRASP_DISTANCE * grasp[:3, 2]
+        pregrasp = se3.translate_along_z(torch.from_numpy(grasp), -PREGRASP_DISTANCE).numpy()
         transit = self.planner.plan_to_pose(q_start, pregrasp, timeout=self.plan_timeout, seed=seed)
         if not transit.success:
             return "infeasible_target" if transit.failure_reason in _INFEASIBLE else "planning_failed"

@@ -73,9 +73,7 @@ PAPER_TABLE1_FULL = {"SR": 0.904, "CR": 0.079, "TOR": 0.017}
 
 def pregrasp_poses(grasp_poses: torch.Tensor) -> torch.Tensor:
     """Grasp poses ``(..., 4, 4)`` moved ``PREGRASP_DISTANCE`` back along their own z (approach) axis."""
-    offset = torch.eye(4, dtype=grasp_poses.dtype, device=grasp_poses.device)
-    offset[2, 3] = -PREGRASP_DISTANCE
-    return grasp_poses @ offset
+    return se3.translate_along_z(grasp_poses, -PREGRASP_DISTANCE)
 
 
 def planning_distance(tcp_pose: torch.Tensor, grasp_poses: torch.Tensor) -> torch.Tensor:
@@ -90,10 +88,7 @@ def planning_distance(tcp_pose: torch.Tensor, grasp_poses: torch.Tensor) -> torc
             f"got {tuple(tcp_pose.shape)}, {tuple(grasp_poses.shape)}"
         )
     target = pregrasp_poses(grasp_poses)
-    tcp = tcp_pose[..., None, :, :].to(target.dtype)
-    d = se3.pose_distance(target, tcp, se3.PLANNING_ROT_WEIGHT)
-    d_twin = se3.pose_distance(se3.rotate_about_z(target, math.pi), tcp, se3.PLANNING_ROT_WEIGHT)
-    return torch.minimum(d, d_twin)
+    return se3.symmetric_pose_distance(target, tcp_pose[..., None, :, :].to(target.dtype), se3.PLANNING_ROT_WEIGHT)
 
 
 def is_planning_success(distance: torch.Tensor | float, threshold: float = PLANNING_SUCCESS_THRESHOLD) -> torch.Tensor:

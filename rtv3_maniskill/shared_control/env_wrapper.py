@@ -117,9 +117,7 @@ def pregrasp_goals(env: Any) -> tuple[torch.Tensor, torch.Tensor]:
     if len(index) == 0:
         raise ValueError("the scene has no valid grasp candidate: HO needs at least one goal")
     grasps = env.grasp_poses[0, index].detach().cpu().double()
-    back = torch.eye(4, dtype=torch.float64)
-    back[2, 3] = -PREGRASP_DISTANCE
-    pre = grasps @ back
+    pre = se3.translate_along_z(grasps, -PREGRASP_DISTANCE)
     twins = se3.rotate_about_z(pre, math.pi)
     return torch.cat([pre, twins]), torch.cat([index, index])
 

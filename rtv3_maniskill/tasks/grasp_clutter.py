@@ -39,7 +39,7 @@ from mani_skill.utils.structs.types import SimConfig
 
 from rtv3_maniskill import se3
 from rtv3_maniskill.features import DEFAULT_MAX_GRASPS, DEFAULT_NUM_POINTS, FPS, GRASP_DIM
-from rtv3_maniskill.tasks.grasp_sampler import GraspSet, sample_grasps
+from rtv3_maniskill.tasks.grasp_sampler import PREGRASP_DISTANCE, GraspSet, sample_grasps
 from rtv3_maniskill.tasks.object_library import convex_part_file, make_object_set
 from rtv3_maniskill.tasks.point_cloud import DEFAULT_VOXEL_SIZE, process_point_cloud, sample_scene_surface
 from rtv3_maniskill.tasks.scene_generation import (
@@ -51,7 +51,6 @@ from rtv3_maniskill.tasks.scene_generation import (
 from rtv3_maniskill.tasks.scene_geometry import ROBOT_BASE_POSITION, WORKSPACE_CENTER, SceneGeometry
 from rtv3_maniskill.tasks.twist_controller import PandaTwist  # noqa: F401  (registers the agent)
 
-PREGRASP_DISTANCE = 0.05
 REST_QPOS = np.array([0.0, np.pi / 8, 0.0, -np.pi * 5 / 8, 0.0, np.pi * 3 / 4, np.pi / 4, 0.04, 0.04])
 
 
@@ -285,18 +284,12 @@ class GraspClutterEnv(BaseEnv):
     @property
     def target_pregrasp_pose(self) -> torch.Tensor:
         """``(B, 4, 4)`` the target grasp moved ``PREGRASP_DISTANCE`` back along its approach (z) axis."""
-        offset = torch.eye(4, device=self.device)
-        offset[2, 3] = -PREGRASP_DISTANCE
-        return self.target_grasp_pose @ offset
+        return se3.translate_along_z(self.target_grasp_pose, -PREGRASP_DISTANCE)
 
     def pregrasp_distance(self) -> torch.Tensor:
         """``(B,)`` pose distance (NOTES.md, shared-control weights) of the TCP to the pre-grasp,
         the smaller over the grasp and its pi-about-z twin (parallel-jaw symmetry)."""
-        tcp = self.tcp_pose_matrix
-        target = self.target_pregrasp_pose
-        d = se3.pose_distance(target, tcp, se3.SHARED_CONTROL_ROT_WEIGHT)
-        d_twin = se3.pose_distance(se3.rotate_about_z(target, np.pi), tcp, se3.SHARED_CONTROL_ROT_WEIGHT)
-        return torch.minimum(d, d_twin)
+        return se3.symmetric_pose_distance(self.target_pregrasp_pose, self.tcp_pose_matrix, se3.SHARED_CONTROL_ROT_WEIGHT)
 
     def robot_in_collision(self) -> torch.Tensor:
         """``(B,)`` bool: any robot link but the base touches something with force above threshold."""

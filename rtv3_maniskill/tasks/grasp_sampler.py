@@ -39,7 +39,7 @@ import numpy as np
 import torch
 import trimesh
 
-from rtv3_maniskill.se3 import matrix_to_quat, rotate_about_z
+from rtv3_maniskill.se3 import matrix_to_quat, rotate_about_z, translate_along_z
 from rtv3_maniskill.tasks.panda_hand import (
     FINGER_DEPTH,
     FINGERTIP_Z,
@@ -100,9 +100,7 @@ class GraspSet:
         """``(M, 4, 4)`` poses moved back by ``distance`` (m) along their approach axis (-z)."""
         if not np.isfinite(distance):
             raise ValueError(f"distance must be finite, got {distance}")
-        out = self.poses.copy()
-        out[:, :3, 3] -= distance * self.poses[:, :3, 2]
-        return out
+        return translate_along_z(torch.from_numpy(self.poses), -distance).numpy()
 
     def to_padded(self, max_grasps: int) -> tuple[np.ndarray, np.ndarray]:
         """``((max_grasps, 9) float32 [pos (3), quat wxyz (4), width, score], (max_grasps,) mask)``
