@@ -300,3 +300,27 @@ def test_trials_file_survives_a_torn_last_line_and_summary_leaves_out_missing_st
     path.write_text("scene,grasp\n1,2\n")
     with pytest.raises(ValueError, match="columns"):
         planning.TrialsFile(path)
+
+
+def test_step0_calibration_of_a_known_gaussian():
+    """Samples of the ML class's own Gaussian are covered at the chi2 rate; far points are not."""
+    from rtv3_maniskill.evaluation.prediction import step0_calibration
+    from rtv3_maniskill.twist_mixture import TwistMixture
+
+    b, k = 4000, 2
+    gen = torch.Generator().manual_seed(0)
+    axes = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))[0]
+    cov = axes @ torch.diag(torch.tensor([0.01, 0.02, 0.05], dtype=torch.float64) ** 2) @ axes.T
+    mean = torch.tensor([[0.1, 0.0, -0.05], [-0.3, 0.2, 0.0]], dtype=torch.float64)
+    mixture = TwistMixture(
+        log_weights=torch.log(torch.tensor([0.7, 0.3], dtype=torch.float64)).expand(b, k),
+        trans_mean=mean.expand(b, k, 3),
+        trans_cov=cov.expand(b, k, 3, 3),
+        rotation_given_translation=lambda v: (torch.zeros_like(v), torch.eye(3).expand(*v.shape[:-1], 3, 3)),
+    )
+    samples = mean[0] + torch.randn(b, 3, generator=gen, dtype=torch.float64) @ torch.linalg.cholesky(cov).T
+    cal = step0_calibration(mixture, samples, alpha=0.85)
+    assert abs(float(cal["covered_ml"].double().mean()) - 0.85) < 0.03
+    assert abs(float(cal["sigma_ml"][0]) - (0.01 * 0.02 * 0.05) ** (1 / 3)) < 1e-9
+    far = step0_calibration(mixture, torch.full((b, 3), 5.0, dtype=torch.float64))
+    assert not bool(far["covered_any"].any()) and bool((far["nll"] > cal["nll"].max()).all())

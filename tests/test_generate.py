@@ -17,7 +17,9 @@ import torch
 from rtv3_maniskill import features as F
 from rtv3_maniskill import se3
 from rtv3_maniskill.cli import main
-from rtv3_maniskill.datasets.lerobot_export import REPO_ID, StagingArea
+from rtv3_maniskill.datasets.demonstrations import HOLD_STEPS
+from rtv3_maniskill.datasets.lerobot_export import REPO_ID, StagingArea, end_at_pregrasp
+from rtv3_maniskill.tasks.grasp_sampler import PREGRASP_DISTANCE
 
 ARGS = ["--num-points", "256", "--max-grasps", "16", "--context", "mesh", "--scene-type", "packed"]
 
@@ -68,12 +70,35 @@ def test_actions_are_the_realised_twists(tiny_dataset):
     assert action[-10:].abs().max() < 0.02
 
 
-def test_episode_reaches_pregrasp_then_grasp(tiny_dataset):
+def test_episode_ends_holding_at_the_pregrasp(tiny_dataset):
+    """Default ``--end-at pregrasp`` (paper): the demonstration stops at the target's pre-grasp."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     ds = LeRobotDataset(REPO_ID, root=tiny_dataset, episodes=[0])
     reached = torch.stack([ds[i]["pregrasp_reached"] for i in range(len(ds))]).reshape(-1)
     assert not bool(reached[0]) and bool(reached[-1])
+    assert int(reached.sum()) == HOLD_STEPS + 1
+    last = ds[len(ds) - 1]
+    grasp = last[F.GRASPS][int(last[F.TARGET_GRASP])].double()
+    pose = se3.pose_to_matrix(grasp[None, :3], grasp[None, 3:7])
+    pregrasp = se3.translate_along_z(pose, -PREGRASP_DISTANCE)[0, :3, 3]
+    assert (last[F.STATE][F.EE_POS].double() - pregrasp).norm() < 0.015
+
+
+def test_end_at_pregrasp_cuts_a_staged_approach():
+    """Episodes staged with the approach (``--end-at grasp``) export cut at the pre-grasp + copies at rest."""
+    rng = np.random.default_rng(0)
+    state, action = rng.normal(size=(40, F.STATE_DIM)).astype(np.float32), rng.normal(size=(40, 6)).astype(np.float32)
+    cut_state, cut_action = end_at_pregrasp(state, action, pregrasp_step=20)
+    assert cut_state.shape == (21 + HOLD_STEPS, F.STATE_DIM) and cut_action.shape == (21 + HOLD_STEPS, 6)
+    np.testing.assert_array_equal(cut_state[:21], state[:21])
+    np.testing.assert_array_equal(cut_action[:20], action[:20])
+    assert not cut_action[20:].any()
+    held = cut_state[21:]
+    np.testing.assert_array_equal(held[:, F.EE_POS], np.repeat(state[20:21, F.EE_POS], HOLD_STEPS, 0))
+    assert not held[:, F.EE_TWIST].any() and not held[:, F.ARM_QVEL].any()
+    with pytest.raises(ValueError, match="pregrasp_step"):
+        end_at_pregrasp(state, action, pregrasp_step=40)
 
 
 def test_interrupted_run_resumes_without_duplicates(tmp_path):

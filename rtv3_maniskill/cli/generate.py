@@ -27,6 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--context", default="rendered", choices=["rendered", "mesh"],
                         help="scene point cloud from the depth camera (rendered once per scene) or mesh samples")
     parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")
+    parser.add_argument("--end-at", default="pregrasp", choices=["pregrasp", "grasp"],
+                        help="demonstrations end at the pre-grasp (paper) or go on along the 5 cm approach to the grasp")
     parser.add_argument("--export-only", action="store_true",
                         help="only (re)build the LeRobot dataset from the episodes finished so far")
 
@@ -51,6 +53,7 @@ def _settings(args: argparse.Namespace) -> dict:
         num_points=args.num_points,
         max_grasps=args.max_grasps,
         context=args.context,
+        end_at=args.end_at,
     )
 
 
@@ -77,7 +80,7 @@ def _init_worker(args_dict: dict) -> None:
         reconfiguration_freq=0,
         max_episode_steps=10_000,
     )
-    _WORKER["recorder"] = DemonstrationRecorder(env, PandaPlanner, plan_timeout=args_dict["plan_timeout"])
+    _WORKER["recorder"] = DemonstrationRecorder(env, PandaPlanner, plan_timeout=args_dict["plan_timeout"], end_at=args_dict["end_at"])
     _WORKER["args"] = args_dict
 
 
@@ -161,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
         pool.close()
         pool.join()
     wall = time.perf_counter() - start
-    exported = export_lerobot_dataset(args.output, args.num_points, args.max_grasps)
+    exported = export_lerobot_dataset(args.output, args.num_points, args.max_grasps, end_at=args.end_at)
     # Summary over the whole folder (this run and earlier, interrupted ones).
     all_attempts = staging.attempts()
     outcome_counts = Counter(r["outcome"] for r in all_attempts.values())

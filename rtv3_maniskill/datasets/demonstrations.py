@@ -4,10 +4,13 @@ For each grasp candidate of a scene (paper, "Simulation Setup and Data Collectio
 
 1. a random initial TCP pose in the workspace, oriented as a person would start (gripper
    pointing down within 45 degrees, random yaw), reached by collision-free IK;
-2. an OMPL/Pinocchio plan to the target's pre-grasp, then the straight 5 cm approach to
-   the grasp (``rtv3_maniskill.datasets.planner``);
+2. an OMPL/Pinocchio plan to the target's pre-grasp, and a check that the straight 5 cm
+   approach to the grasp is feasible (``rtv3_maniskill.datasets.planner``);
 3. execution in ``GraspClutter-v1`` at 20 Hz with ``pd_joint_pos_vel`` control, then
-   ``HOLD_STEPS`` steps holding the final pose (the model learns to stop, NOTES.md);
+   ``HOLD_STEPS`` steps holding the final pose (the model learns to stop, NOTES.md). With
+   ``end_at="pregrasp"`` (the paper's protocol: trajectories and users target the
+   pre-grasp; the final approach is a separate user action) the demonstration ends at the
+   pre-grasp; with ``end_at="grasp"`` the approach is executed too;
 4. what the simulator did is recorded: per step the state (TCP pose, body twist, joint
    state) and, as the action, the body twist realised over the step.
 
@@ -30,6 +33,8 @@ from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF_SIZE
 
 HOLD_STEPS = 13
+END_AT = ("pregrasp", "grasp")
+"""Where a demonstration ends (see the module docstring)."""
 FAILURE_REASONS = (
     "infeasible_target",  # no collision-free IK for the pre-grasp or the grasp: not a planner failure
     "planning_failed",
@@ -114,7 +119,10 @@ class DemonstrationRecorder:
     renders the depth camera once per scene; ``"state_dict"`` samples the meshes.
     """
 
-    def __init__(self, env, planner_factory, plan_timeout: float = 3.0):
+    def __init__(self, env, planner_factory, plan_timeout: float = 3.0, end_at: str = "pregrasp"):
+        if end_at not in END_AT:
+            raise ValueError(f"end_at must be one of {END_AT}, got {end_at!r}")
+        self.end_at = end_at
         self.env = env
         self.base = env.unwrapped
         self.planner_factory = planner_factory
@@ -166,8 +174,11 @@ class DemonstrationRecorder:
         return self._execute(transit.trajectory, approach.trajectory, grasp_index, target_object, pregrasp, seed)
 
     def _execute(self, transit, approach, grasp_index, target_object, pregrasp, seed) -> Episode | str:
-        q_plan = np.concatenate([transit.q, approach.q[1:]])
-        qd_plan = np.concatenate([transit.qd, approach.qd[1:]])
+        if self.end_at == "grasp":
+            q_plan = np.concatenate([transit.q, approach.q[1:]])
+            qd_plan = np.concatenate([transit.qd, approach.qd[1:]])
+        else:
+            q_plan, qd_plan = transit.q, transit.qd
         q_plan = np.concatenate([q_plan, np.repeat(q_plan[-1:], HOLD_STEPS, 0)])
         qd_plan = np.concatenate([qd_plan, np.zeros((HOLD_STEPS, 7))])
         pregrasp_step = len(transit.q) - 1
@@ -212,9 +223,9 @@ class DemonstrationRecorder:
             target_object=target_object,
             task=describe_grasp(names[target_object], self._grasp),
             pregrasp_step=pregrasp_step,
-            info=dict(plan_seed=seed, closest_to_pregrasp=closest_to_pregrasp),
+            info=dict(plan_seed=seed, closest_to_pregrasp=closest_to_pregrasp, end_at=self.end_at),
             **self._context,
         )
 
 
-__all__ = ["DemonstrationRecorder", "Episode", "FAILURE_REASONS", "HOLD_STEPS", "describe_grasp", "random_start_pose", "DT"]
+__all__ = ["DemonstrationRecorder", "END_AT", "Episode", "FAILURE_REASONS", "HOLD_STEPS", "describe_grasp", "random_start_pose", "DT"]

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from rtv3_maniskill import features as F
-from rtv3_maniskill.datasets.demonstrations import Episode
+from rtv3_maniskill.datasets.demonstrations import END_AT, HOLD_STEPS, Episode
 
 STAGING = "rtv3_staging"
 SETTINGS = "rtv3_generation.json"
@@ -61,6 +61,28 @@ def state_histories(states: np.ndarray, steps: int = F.HISTORY_STEPS) -> np.ndar
     state repeated before the episode start (what LeRobot's windows and the policy queue do)."""
     padded = np.concatenate([np.repeat(states[:1], steps - 1, 0), states])
     return np.stack([padded[t : t + steps] for t in range(len(states))]).astype(np.float32)
+
+
+def end_at_pregrasp(state: np.ndarray, action: np.ndarray, pregrasp_step: int, hold_steps: int = HOLD_STEPS) -> tuple[np.ndarray, np.ndarray]:
+    """Cut a staged episode that goes on to the grasp at its pre-grasp and pad it with
+    ``hold_steps`` copies of the pre-grasp state at rest (zero twist and joint velocities;
+    NOTES.md: demonstrations are padded with copies of the final pose).
+
+    Args:
+        state: ``(S, 27)`` staged states; action: ``(S, 6)`` realised twists.
+        pregrasp_step: index of the first state at the pre-grasp.
+    Returns:
+        ``(pregrasp_step + 1 + hold_steps, 27)`` states and ``(..., 6)`` actions; the action
+        leaving the pre-grasp and every padded action are zero.
+    """
+    if not 0 <= pregrasp_step < len(state):
+        raise ValueError(f"pregrasp_step {pregrasp_step} outside an episode of {len(state)} steps")
+    at_rest = state[pregrasp_step].copy()
+    at_rest[F.EE_TWIST] = 0.0
+    at_rest[F.ARM_QVEL] = 0.0
+    states = np.concatenate([state[: pregrasp_step + 1], np.repeat(at_rest[None], hold_steps, 0)])
+    actions = np.concatenate([action[:pregrasp_step], np.zeros((hold_steps + 1, action.shape[1]), action.dtype)])
+    return states.astype(np.float32), actions.astype(np.float32)
 
 
 class StagingArea:
@@ -151,8 +173,13 @@ def check_or_write_settings(root: Path, settings: dict) -> None:
     path.write_text(json.dumps(settings, indent=2))
 
 
-def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progress: bool = True) -> int:
-    """(Re)build the LeRobot dataset in ``root`` from the staged episodes; returns frames written."""
+def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progress: bool = True, end_at: str = "pregrasp") -> int:
+    """(Re)build the LeRobot dataset in ``root`` from the staged episodes; returns frames written.
+
+    With ``end_at="pregrasp"`` episodes staged with the approach to the grasp (recorded with
+    ``end_at="grasp"``) are cut at the pre-grasp (:func:`end_at_pregrasp`)."""
+    if end_at not in END_AT:
+        raise ValueError(f"end_at must be one of {END_AT}, got {end_at!r}")
     import datasets as hf_datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from tqdm import tqdm
@@ -174,6 +201,8 @@ def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progres
     for path in tqdm(files, desc="export to LeRobot", disable=not progress, unit="episode"):
         ep = staging.load(path)
         meta = ep["meta"]
+        if end_at == "pregrasp" and meta.get("info", {}).get("end_at", "grasp") == "grasp":
+            ep["state"], ep["action"] = end_at_pregrasp(ep["state"], ep["action"], meta["pregrasp_step"])
         history = state_histories(ep["state"])
         for t in range(len(ep["state"])):
             dataset.add_frame(

@@ -276,6 +276,43 @@ def window_batch(
     return batch, poses[:, 0], poses[:, 1:]
 
 
+# ----------------------------------------------------------------------------- calibration
+
+CALIBRATION_ALPHA = 0.85
+"""The shared controller's OOD-gate quantile (NOTES.md), used to check the prior's calibration."""
+
+
+def step0_calibration(mixture: Any, true_translation: torch.Tensor, alpha: float = CALIBRATION_ALPHA) -> dict[str, torch.Tensor]:
+    """How well the step-0 translation Gaussians cover the expert's next translation velocity.
+
+    Args:
+        mixture: the prior's ``TwistMixture`` (B windows, K classes; m/s, EE body frame).
+        true_translation: ``(B, 3)`` the recorded velocity of the next step (same frame and units).
+    Returns per window ``(B,)``: ``maha_sq_ml`` the squared Mahalanobis distance under the most
+    likely class; ``covered_ml`` / ``covered_any`` whether it is within ``chi2.ppf(alpha, 3)``
+    of that class / of the nearest class (the latter is the shared controller's OOD test with a
+    perfect user: a calibrated prior covers ~``alpha``); ``nll`` the mixture's negative
+    log-likelihood (nats); ``sigma_ml`` the geometric-mean standard deviation of the ML class (m/s).
+    """
+    from scipy.stats import chi2
+
+    threshold = float(chi2.ppf(alpha, 3))
+    mu, cov = mixture.trans_mean.double(), mixture.trans_cov.double()
+    diff = (true_translation.double()[:, None] - mu)[..., None]  # (B, K, 3, 1)
+    maha = (diff.transpose(-1, -2) @ torch.linalg.solve(cov, diff))[..., 0, 0]  # (B, K)
+    log_det = torch.linalg.slogdet(cov)[1]
+    log_n = -0.5 * (maha + log_det + 3 * math.log(2 * math.pi))
+    best = mixture.log_weights.argmax(-1)
+    rows = torch.arange(best.shape[0])
+    return dict(
+        maha_sq_ml=maha[rows, best],
+        covered_ml=maha[rows, best] <= threshold,
+        covered_any=maha.min(-1).values <= threshold,
+        nll=-torch.logsumexp(mixture.log_weights.double() + log_n, -1),
+        sigma_ml=torch.exp(log_det[rows, best] / 6.0),
+    )
+
+
 # ----------------------------------------------------------------------------- evaluation
 
 
@@ -300,6 +337,7 @@ def evaluate_windows(
     sums = {name: 0.0 for name in METRIC_NAMES}
     baseline_sums = {f"{b}_{m}": 0.0 for b in BASELINES for m in ("ade", "fde")}
     per_step = torch.zeros(horizon, dtype=torch.float64)
+    calibration: dict[str, list[torch.Tensor]] = {}
     for start in tqdm(range(0, len(windows), batch_size), desc="prediction windows", unit="batch", disable=not progress):
         chunk = windows[start : start + batch_size]
         batch, current, gt = window_batch(episodes, chunk, history, horizon)
@@ -308,6 +346,11 @@ def evaluate_windows(
         for name in METRIC_NAMES:
             sums[name] += float(metrics[name].sum())
         per_step += metrics["errors_ml"].sum(0)
+        if hasattr(policy, "predict_step0_mixture"):
+            mixture = policy.predict_step0_mixture(batch, update_history=False)
+            true_v = se3.body_twist(current, gt[:, 0], ft.DT)[:, :3]
+            for key, value in step0_calibration(mixture, true_v).items():
+                calibration.setdefault(key, []).append(value.double().cpu())
         for name, twists in baseline_twists(batch[ft.STATE][:, -1].double(), horizon).items():
             ade, fde = ade_fde(displacement_errors(gt, future_poses(current, twists)))
             baseline_sums[f"{name}_ade"] += float(ade.sum())
@@ -316,6 +359,16 @@ def evaluate_windows(
     out: dict[str, Any] = {name: sums[name] / n for name in METRIC_NAMES}
     out["per_step_ml"] = (per_step / n).tolist()
     out["baselines"] = {key: value / n for key, value in baseline_sums.items()}
+    if calibration:
+        cal = {key: torch.cat(values) for key, values in calibration.items()}
+        out["step0_calibration"] = dict(
+            alpha=CALIBRATION_ALPHA,
+            covered_ml=float(cal["covered_ml"].mean()),
+            covered_any=float(cal["covered_any"].mean()),
+            median_maha_sq_ml=float(cal["maha_sq_ml"].median()),
+            mean_nll=float(cal["nll"].mean()),
+            median_sigma_ml=float(cal["sigma_ml"].median()),
+        )
     return out
 
 
@@ -381,6 +434,7 @@ def run_prediction_evaluation(
         metrics={name: metrics[name] for name in METRIC_NAMES},
         per_step_ml=metrics["per_step_ml"],
         baselines=metrics["baselines"],
+        step0_calibration=metrics.get("step0_calibration"),
         units="pose distance x1000: L1 translation (m) + (0.3/pi) * L1 xyz-Euler of T_gt^-1 T_pred (rad)",
         num_windows=len(windows),
         num_windows_available=available,
@@ -414,6 +468,13 @@ def format_table(report: dict[str, Any]) -> str:
         b = report.get("baselines", {})
         if f"{name}_ade" in b:
             lines.append(f"{name.replace('_', ' '):<19}{b[name + '_ade']:>8.2f}{b[name + '_fde']:>8.2f}  (reference)")
+    cal = report.get("step0_calibration")
+    if cal:
+        lines.append(
+            f"step-0 translation coverage at chi2 {cal['alpha']}: ML class {100 * cal['covered_ml']:.1f} %, "
+            f"nearest class {100 * cal['covered_any']:.1f} % (calibrated ~{100 * cal['alpha']:.0f} %); "
+            f"median ML sigma {1000 * cal['median_sigma_ml']:.1f} mm/s"
+        )
     lines += [
         f"{report['num_windows']} windows of {report['window']['length']} steps "
         f"(of {report['num_windows_available']}), {report['num_episodes']} episodes, "
