@@ -75,15 +75,18 @@ class QueryDecoder(nn.Module):
 class GraspEncoder(nn.Module):
     """``f_grasp = TransformerEncoder(G)``; ``h_grasp = TransformerDecoder(f_grasp, h0_d)``.
 
-    Grasps are an unordered set: no positional encoding; padding rows are masked.
+    Grasps are an unordered set: no positional encoding; padding rows are masked. The encoder
+    is pre-norm with a final LayerNorm: each grasp token keeps a residual path from its own
+    embedding, so the tokens stay distinguishable (a post-norm encoder trained on planner data
+    collapsed every token to one vector and the prior ignored its goal).
     """
 
     def __init__(self, in_dim: int, query_dim: int, dim: int, heads: int, encoder_layers: int,
                  decoder_layers: int, feedforward: int, dropout: float):
         super().__init__()
         self.embed = nn.Linear(in_dim, dim)
-        layer = nn.TransformerEncoderLayer(dim, heads, feedforward, dropout, batch_first=True)
-        self.encoder = nn.TransformerEncoder(layer, encoder_layers, enable_nested_tensor=False)
+        layer = nn.TransformerEncoderLayer(dim, heads, feedforward, dropout, batch_first=True, norm_first=True)
+        self.encoder = nn.TransformerEncoder(layer, encoder_layers, norm=nn.LayerNorm(dim), enable_nested_tensor=False)
         self.decoder = QueryDecoder(query_dim, dim, heads, decoder_layers, feedforward, dropout)
         self.out_dim = dim
 

@@ -1,0 +1,55 @@
+"""The shipped RT-V3 checkpoint: loads, and its prediction depends on where the user goes.
+
+A prior that ignores its grasp context can only extrapolate the current motion; the posterior
+then has nothing to add to a user's command (this caught a collapsed grasp encoder).
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import pytest
+import torch
+
+import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
+from rtv3_maniskill import features as ft
+from rtv3_maniskill import se3
+from rtv3_maniskill.evaluation.planning import context_mask
+from rtv3_maniskill.shared_control.env_wrapper import load_rtv3_policy
+
+
+@pytest.fixture(scope="module")
+def policy():
+    torch.set_num_threads(1)
+    return load_rtv3_policy()
+
+
+def test_shipped_checkpoint_heads_for_the_goal_it_is_given(policy):
+    """From rest in a clutter scene, with one candidate grasp as context, the predicted 12-step
+    motion (most likely class) changes with the candidate and, over the scene's candidates,
+    points towards the candidate's pre-grasp more often than away from it."""
+    env = gym.make("GraspClutter-v1", obs_mode="state_dict", control_mode="pd_ee_twist",
+                   num_points=policy.config.num_points, max_grasps=policy.config.max_grasps)
+    try:
+        obs, _ = env.reset(seed=900000)
+        base = env.unwrapped
+        observation = ft.observation_from_env(obs)
+        cloud, cloud_mask = base.capture_point_cloud()  # the depth-camera cloud the data was made with
+        observation[ft.POINT_CLOUD], observation[ft.POINT_CLOUD_MASK] = cloud.float(), cloud_mask.float()
+        valid = torch.nonzero(base.grasps_mask[0] > 0.5).flatten().tolist()
+        assert len(valid) >= 4
+        tcp = base.tcp_pose_matrix[0].double()
+        displacements, towards = [], []
+        for g in valid[:: max(1, len(valid) // 8)]:
+            policy.reset()
+            ctx = dict(observation, **{ft.GRASPS_MASK: context_mask(observation[ft.GRASPS_MASK], g, "target")})
+            chunk = policy.predict_action_chunk(ctx)[0].double()  # (H, 6) body twists
+            end = se3.integrate_body_twists(tcp, chunk, ft.DT)[-1]
+            moved = end[:3, 3] - tcp[:3, 3]
+            pregrasp = se3.translate_along_z(base.grasp_poses[0, g].double(), -0.05)[:3, 3]
+            displacements.append(moved)
+            towards.append(float(torch.nn.functional.cosine_similarity(moved, pregrasp - tcp[:3, 3], 0)))
+    finally:
+        env.close()
+    spread = torch.stack(displacements).std(0).norm()
+    assert spread > 0.005, f"predicted motion barely depends on the goal (spread {float(spread):.4f} m)"
+    assert sum(c > 0.3 for c in towards) > len(towards) / 2, towards
