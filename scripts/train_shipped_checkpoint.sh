@@ -1,13 +1,17 @@
 #!/usr/bin/env bash
 # How the shipped checkpoint (rtv3_maniskill/checkpoints/rtv3_grasp_clutter) is made:
 # planner demonstrations -> LeRobot dataset -> lerobot-train -> copy of the last checkpoint.
-# CPU only, two stages (what fitted in the compute this project had):
+# CPU only, in stages (what fitted in the compute this project had):
 #   1. 2,000 steps (batch 64) from scratch on scenes 100000..100103 recorded with the
 #      approach to the grasp (--end-at grasp; 688 trajectories);
-#   2. fine-tuning with --policy.path for STEPS2 steps on scenes 100000..100299 ending at
-#      the pre-grasp (--end-at pregrasp, the paper's protocol; 2,058 trajectories). The
-#      training-step counter (KL / logit-clip annealing) continues from stage 1.
-# Environment: STEPS1, STEPS2, BATCH trade time for quality (defaults: what shipped).
+#   2. fine-tuning with --policy.path on scenes 100000..100299 ending at the pre-grasp
+#      (--end-at pregrasp, the paper's protocol; 2,058 trajectories), STEPS2 steps.
+#      The training-step counter (KL / logit-clip annealing) continues from stage 1.
+# History of the shipped weights: stage 1 and the first 500 steps of stage 2 ran with a
+# post-norm grasp encoder (commit 6749866 and before); the rest of stage 2 with the pre-norm
+# one of context_encoders.py (same parameter names plus a final LayerNorm). This script runs
+# every stage with the current code.
+# Environment: STEPS1, STEPS2, BATCH trade time for quality.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 STEPS1=${STEPS1:-2000}

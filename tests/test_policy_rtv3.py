@@ -483,6 +483,15 @@ def test_grasp_subset_augmentation_keeps_the_target():
     assert (kept <= mask).all()
     counts = kept.sum(1)
     assert counts.min() >= 10 and counts.max() <= 30 and counts.float().std() > 0
+    # log-uniform sizes: small sets (the target nearly explicit) much more often than uniform ones
+    many = SceneContext(torch.zeros(4000, 4, 6), torch.ones(4000, 4, dtype=torch.bool), torch.zeros(4000, 40, 9), mask[:1].expand(4000, -1))
+    goal = torch.zeros(4000, dtype=torch.long)
+    log_counts = subsample_grasps(many, goal, 1, "log_uniform").grasp_mask.sum(1).float()
+    uni_counts = subsample_grasps(many, goal, 1, "uniform").grasp_mask.sum(1).float()
+    assert log_counts.min() >= 1 and log_counts.max() <= 30
+    assert (log_counts <= 3).float().mean() > 0.25 > (uni_counts <= 3).float().mean()
+    with pytest.raises(ValueError, match="sizes"):
+        subsample_grasps(many, goal, 1, "gaussian")
 
 
 # ----------------------------------------------------------------------------- ablations

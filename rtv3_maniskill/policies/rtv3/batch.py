@@ -143,12 +143,13 @@ def read_actions(batch: dict[str, torch.Tensor], batch_size: int, horizon: int) 
     return actions, ~pad.bool()
 
 
-def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int = 10) -> SceneContext:
+def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int = 10, sizes: str = "uniform") -> SceneContext:
     """Training augmentation (NOTES): keep a random subset of 10..all valid grasps, always the target.
 
     Args:
         target: ``(B,)`` or ``(B, 1)`` index of the target grasp; rows whose target is out of range or
             not a valid grasp are left unchanged.
+        sizes: subset size distribution over ``min_keep..all``: ``"uniform"`` or ``"log_uniform"``.
     """
     mask = context.grasp_mask
     batch, count = mask.shape
@@ -158,7 +159,15 @@ def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int 
     usable = in_range & mask.gather(1, safe_target[:, None])[:, 0]
     n_valid = mask.sum(1)
     low = torch.minimum(n_valid, torch.full_like(n_valid, min_keep))
-    keep_n = low + (torch.rand(batch, device=mask.device) * (n_valid - low + 1).float()).long().clamp(max=n_valid - low)
+    u = torch.rand(batch, device=mask.device)
+    if sizes == "log_uniform":  # keep_n = floor(exp(U(log low, log(all + 1))))
+        log_low, log_high = low.clamp_min(1).float().log(), (n_valid + 1).float().log()
+        keep_n = torch.exp(log_low + u * (log_high - log_low)).floor().long()
+        keep_n = torch.minimum(torch.maximum(keep_n, low), n_valid)
+    elif sizes == "uniform":
+        keep_n = low + (u * (n_valid - low + 1).float()).long().clamp(max=n_valid - low)
+    else:
+        raise ValueError(f"sizes must be 'uniform' or 'log_uniform', got {sizes!r}")
     priority = torch.rand(batch, count, device=mask.device)
     priority = priority.masked_fill(~mask, 2.0)
     priority.scatter_(1, safe_target[:, None], -1.0)

@@ -138,6 +138,10 @@ class RTV3Config(PreTrainedConfig):
     """Training augmentation (NOTES.md): each sample keeps a random subset of grasp candidates of size
     grasp_subset_min..all, always with the target. The authors use 10; 1 also covers the planning
     benchmark, which shows the policy only its target grasp."""
+    grasp_subset_sizes: str = "log_uniform"
+    """How the subset size is drawn in grasp_subset_min..all: "uniform", or "log_uniform" (small
+    sets, where the target is nearly explicit, far more often: the goal signal that teaches the
+    model to use its grasp context; with "uniform" on ~2k planner trajectories it learned to ignore it)."""
 
     # Point cloud encoder (PTv3-style).
     use_point_encoder: bool = True
@@ -184,6 +188,8 @@ class RTV3Config(PreTrainedConfig):
         self.point_channels = tuple(int(c) for c in self.point_channels)
         self.point_heads = tuple(int(h) for h in self.point_heads)
         self.point_depths = tuple(int(d) for d in self.point_depths)
+        if self.grasp_subset_sizes not in ("uniform", "log_uniform"):
+            raise ValueError(f"grasp_subset_sizes must be 'uniform' or 'log_uniform', got {self.grasp_subset_sizes!r}")
         positive_ints = {
             "n_obs_steps": self.n_obs_steps,
             "horizon": self.horizon,

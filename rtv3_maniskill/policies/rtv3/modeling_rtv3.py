@@ -87,7 +87,8 @@ class RTV3Policy(PreTrainedPolicy):
         inputs = self._training_inputs(batch)
         actions, valid = read_actions(batch, inputs.states.shape[0], self.config.horizon)
         if self.training and ft.TARGET_GRASP in batch:
-            inputs = RTV3Inputs(inputs.states, subsample_grasps(inputs.context, batch[ft.TARGET_GRASP], self.config.grasp_subset_min))
+            inputs = RTV3Inputs(inputs.states, subsample_grasps(
+                inputs.context, batch[ft.TARGET_GRASP], self.config.grasp_subset_min, self.config.grasp_subset_sizes))
         loss, info = self.model(inputs, actions.to(inputs.states), valid.to(inputs.states.device), int(self.train_step))
         if self.training:
             self.train_step += 1
