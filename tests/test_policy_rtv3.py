@@ -403,6 +403,22 @@ def test_save_load_round_trip(tmp_path, policy: RTV3Policy, batch: dict):
     policy.train_step.zero_()
 
 
+def test_init_weights_from_starts_fine_tuning(tmp_path, policy: RTV3Policy, batch: dict):
+    """``--policy.init_weights_from=DIR`` (fine-tuning with the rtv3 processors) copies the weights and
+    the step counter, is consumed (the new checkpoint loads on its own), and names a bad folder."""
+    obs = observation_only(batch)
+    policy.train_step.fill_(77)
+    policy.save_pretrained(tmp_path / "start")
+    tuned = make_policy(seed=5, init_weights_from=str(tmp_path / "start")).eval()
+    assert int(tuned.train_step) == 77 and tuned.config.init_weights_from is None
+    torch.testing.assert_close(tuned.predict_action_chunk(obs), policy.predict_action_chunk(obs), atol=0, rtol=0)
+    policy.train_step.zero_()
+    tuned.save_pretrained(tmp_path / "tuned")
+    assert RTV3Policy.from_pretrained(tmp_path / "tuned").config.init_weights_from is None
+    with pytest.raises(FileNotFoundError, match="init_weights_from"):
+        make_policy(init_weights_from=str(tmp_path / "missing"))
+
+
 # ----------------------------------------------------------------------------- bad input
 
 

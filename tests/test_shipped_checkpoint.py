@@ -24,9 +24,9 @@ def policy():
 
 
 def test_shipped_checkpoint_heads_for_the_goal_it_is_given(policy):
-    """From rest in a clutter scene, with one candidate grasp as context, the predicted 12-step
-    motion (most likely class) changes with the candidate and, over the scene's candidates,
-    points towards the candidate's pre-grasp more often than away from it."""
+    """From rest in a clutter scene, with one candidate grasp as context, the heading of the
+    predicted 12-step motion (most likely class) changes with the candidate and, on average over
+    the scene's candidates, points towards the candidate's pre-grasp (mean cosine > 0.5)."""
     env = gym.make("GraspClutter-v1", obs_mode="state_dict", control_mode="pd_ee_twist",
                    num_points=policy.config.num_points, max_grasps=policy.config.max_grasps)
     try:
@@ -50,6 +50,7 @@ def test_shipped_checkpoint_heads_for_the_goal_it_is_given(policy):
             towards.append(float(torch.nn.functional.cosine_similarity(moved, pregrasp - tcp[:3, 3], 0)))
     finally:
         env.close()
-    spread = torch.stack(displacements).std(0).norm()
-    assert spread > 0.005, f"predicted motion barely depends on the goal (spread {float(spread):.4f} m)"
-    assert sum(c > 0.3 for c in towards) > len(towards) / 2, towards
+    directions = torch.nn.functional.normalize(torch.stack(displacements), dim=-1)
+    spread = directions.std(0).norm()  # 0 when every goal gives the same heading
+    assert spread > 0.2, f"the predicted heading barely depends on the goal (spread {float(spread):.3f})"
+    assert sum(towards) / len(towards) > 0.5, f"the predicted motion does not head for the goal: cosines {towards}"

@@ -109,6 +109,11 @@ class RTV3Config(PreTrainedConfig):
         }
     )
 
+    init_weights_from: str | None = None
+    """Checkpoint folder whose weights (and training-step counter) initialise a new run: fine-tuning
+    with ``--policy.type=rtv3``, so the rtv3 pre-processor (which keeps ``target_grasp_index`` for the
+    grasp-subset augmentation) is built; ``--policy.path`` would load a saved pipeline that drops it."""
+
     # Latent variable and decoder.
     use_stored_history: bool = True
     """Read the history from the dataset's ``observation.state_history`` (one row per sample) instead of

@@ -13,6 +13,8 @@ LeRobot's ACT/Diffusion queues). Call exactly one of them per control step, or p
 
 from __future__ import annotations
 
+import logging
+
 from collections import deque
 from pathlib import Path
 
@@ -61,7 +63,31 @@ class RTV3Policy(PreTrainedPolicy):
         self.model = RTV3Model(config)
         # Training step counter (drives beta / logit-clip annealing); saved with the weights.
         self.register_buffer("train_step", torch.zeros((), dtype=torch.long))
+        self._warned_no_target = False
+        if config.init_weights_from:
+            self._load_initial_weights(config.init_weights_from)
+            config.init_weights_from = None  # consumed: saved checkpoints load on their own
         self.reset()
+
+    def _load_initial_weights(self, folder: str) -> None:
+        """Fine-tuning start: weights (and the training-step counter) of another checkpoint folder.
+
+        Parameters that checkpoint lacks keep their fresh initialisation; shapes must match.
+        """
+        from safetensors.torch import load_file
+
+        path = Path(folder).expanduser() / "model.safetensors"
+        if not path.is_file():
+            raise FileNotFoundError(f"init_weights_from: no model.safetensors in {folder}")
+        state = load_file(str(path))
+        own = self.state_dict()
+        wrong = [k for k, v in state.items() if k in own and own[k].shape != v.shape]
+        if wrong:
+            raise ValueError(f"init_weights_from: shapes differ from this config for {wrong[:5]}")
+        missing, unexpected = self.load_state_dict(state, strict=False)
+        if missing or unexpected:
+            logging.warning("init_weights_from %s: %d parameters freshly initialised %s, %d ignored %s",
+                            folder, len(missing), missing[:3], len(unexpected), unexpected[:3])
 
     # ------------------------------------------------------------------ LeRobot API
 
@@ -86,6 +112,12 @@ class RTV3Policy(PreTrainedPolicy):
         """
         inputs = self._training_inputs(batch)
         actions, valid = read_actions(batch, inputs.states.shape[0], self.config.horizon)
+        if self.training and ft.TARGET_GRASP not in batch and not self._warned_no_target:
+            self._warned_no_target = True
+            logging.warning(
+                "training batch without %r: no grasp-subset augmentation (a pre-processor loaded with "
+                "lerobot-train --policy.path drops it; fine-tune with --policy.type=rtv3 "
+                "--policy.init_weights_from=DIR instead)", ft.TARGET_GRASP)
         if self.training and ft.TARGET_GRASP in batch:
             inputs = RTV3Inputs(inputs.states, subsample_grasps(
                 inputs.context, batch[ft.TARGET_GRASP], self.config.grasp_subset_min, self.config.grasp_subset_sizes))
