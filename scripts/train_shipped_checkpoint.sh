@@ -4,13 +4,15 @@
 # CPU only, in stages (what fitted in the compute this project had):
 #   1. 2,000 steps (batch 64) from scratch on scenes 100000..100103 recorded with the
 #      approach to the grasp (--end-at grasp; 688 trajectories);
-#   2. fine-tuning with --policy.path on scenes 100000..100299 ending at the pre-grasp
-#      (--end-at pregrasp, the paper's protocol; 2,058 trajectories), STEPS2 steps.
-#      The training-step counter (KL / logit-clip annealing) continues from stage 1.
-# History of the shipped weights: stage 1 and the first 500 steps of stage 2 ran with a
-# post-norm grasp encoder (commit 6749866 and before); the rest of stage 2 with the pre-norm
-# one of context_encoders.py (same parameter names plus a final LayerNorm). This script runs
-# every stage with the current code.
+#   2. fine-tuning (--policy.type=rtv3 --policy.init_weights_from=stage 1, so the rtv3
+#      pre-processor keeps target_grasp_index for the grasp-subset augmentation) on scenes
+#      100000..100299 ending at the pre-grasp (--end-at pregrasp, the paper's protocol;
+#      2,058 trajectories), STEPS2 steps. The step counter (KL / logit-clip annealing) carries on.
+# History of the shipped weights (this script runs every stage with the current code): stage 1
+# and 500 steps of stage 2 (via --policy.path: no augmentation) ran with a post-norm grasp
+# encoder whose tokens collapsed (commit 6749866 and before); then 250 + 250 steps with the
+# pre-norm encoder (re-initialised for the second 250), still via --policy.path; then the
+# final STEPS2 steps as in stage 2 below, with log-uniform grasp subsets.
 # Environment: STEPS1, STEPS2, BATCH trade time for quality.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -30,7 +32,8 @@ rm -rf outputs/train_stage1
 
 .venv/bin/rtv3 generate --num-scenes 300 --output data/train --end-at pregrasp "${COMMON[@]}"
 rm -rf outputs/train_stage2
-.venv/bin/lerobot-train --policy.path=outputs/train_stage1/checkpoints/last/pretrained_model \
+.venv/bin/lerobot-train --policy.type=rtv3 \
+    --policy.init_weights_from=outputs/train_stage1/checkpoints/last/pretrained_model \
     --dataset.root=data/train --steps="$STEPS2" --output_dir=outputs/train_stage2 "${TRAIN[@]}"
 
 rm -rf rtv3_maniskill/checkpoints/rtv3_grasp_clutter

@@ -521,6 +521,8 @@ def test_grasp_subset_augmentation_keeps_the_target():
         dict(use_grasp_encoder=False, use_point_encoder=False),
         dict(factorized_rotation=False),
         dict(latent_training="sample", num_maneuver_classes=25),
+        dict(teacher_forcing=False),
+        dict(teacher_forcing=False, factorized_rotation=False),
     ],
 )
 def test_ablation_configs_run(overrides: dict):

@@ -124,6 +124,10 @@ class RTV3Config(PreTrainedConfig):
     decoder_context_dim: int = 64
     head_hidden_dim: int = 128
     factorized_rotation: bool = True
+    teacher_forcing: bool = True
+    """Training: the GRU reads the true previous action (True) or its own most likely one (False,
+    as at inference). Teacher-forced, the next twist is predictable from the last one alone, so
+    little of the loss rewards using the goal context."""
     latent_training: str = "enumerate"
 
     # Dynamics encoders.

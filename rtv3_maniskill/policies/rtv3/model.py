@@ -178,14 +178,14 @@ class RTV3Model(nn.Module):
         weight = valid.to(target.dtype)
         if c.latent_training == "enumerate":
             start, prev = self._expand_classes(enc)
-            step_ll = self.decoder.log_likelihood(start, prev, target.repeat_interleave(k, 0), c.log_prob_clamp)
+            step_ll = self.decoder.log_likelihood(start, prev, target.repeat_interleave(k, 0), c.log_prob_clamp, c.teacher_forcing)
             seq_ll = (step_ll.view(batch, k, -1) * weight[:, None]).sum(-1)  # (B, K)
             expected_ll = (log_q.exp() * seq_ll).sum(-1)
         else:  # one z ~ q per sample (Trajectron++); q learns through the KL term only
             z_index = torch.distributions.Categorical(logits=log_q.detach()).sample()
             z = torch.nn.functional.one_hot(z_index, k).to(enc.h0.dtype)
             start = self.decoder.start(enc.h0, z)
-            step_ll = self.decoder.log_likelihood(start, enc.prev_action, target, c.log_prob_clamp)
+            step_ll = self.decoder.log_likelihood(start, enc.prev_action, target, c.log_prob_clamp, c.teacher_forcing)
             expected_ll = (step_ll * weight).sum(-1)
         nll = -expected_ll.mean()
         kl = kl_categorical(log_q, log_p).mean()
