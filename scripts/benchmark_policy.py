@@ -44,6 +44,7 @@ def synthetic_batch(batch: int, cfg: RTV3Config, seed: int = 0) -> dict[str, tor
         ft.GRASPS_MASK: torch.ones(batch, m),
         ft.ACTION: (velocity * torch.tensor([1.0, -1.0, -1.0])).repeat(batch, h, 2) * torch.tensor([1.0] * 3 + [0.0] * 3),
         f"{ft.ACTION}_is_pad": torch.zeros(batch, h, dtype=torch.bool),
+        ft.TARGET_GRASP: torch.zeros(batch, 1, dtype=torch.long),  # training applies the grasp-subset augmentation
     }
 
 
