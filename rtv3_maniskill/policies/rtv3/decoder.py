@@ -72,49 +72,39 @@ class TrajectoryDecoder(nn.Module):
         state = self.initial_state(torch.cat([z, h0], -1))[None]
         return DecoderStart(state, torch.cat([z, self.context_proj(h0)], -1), z)
 
-    def _free_running_log_likelihood(self, start: DecoderStart, prev_action: torch.Tensor, actions: torch.Tensor,
-                                     clamp: float) -> torch.Tensor:
-        """As :meth:`log_likelihood`, but the GRU is fed its own most likely action (detached) instead of
-        the true one, as at inference: the horizon must be predicted from ``h0``, not from a_{t-1}."""
-        state, action, out = start.state, prev_action, []
-        for t in range(actions.shape[1]):
-            state = self.step(start, action, state)
-            h, v_true, w_true = state[0], actions[:, t, :3], actions[:, t, 3:]
-            if self.factorized_rotation:
-                trans = self.translation(h, start.z)
-                ll = trans.log_prob(v_true).clamp(max=clamp) + self.rotation(h, start.z, v_true).log_prob(w_true).clamp(max=clamp)
-                v_mode = trans.mean
-                action = torch.cat([v_mode, self.rotation(h, start.z, v_mode).mean], -1).detach()
-            else:
-                joint = self.joint(h, start.z)
-                ll = joint.log_prob(actions[:, t]).clamp(max=2 * clamp)
-                action = joint.mean.detach()
-            out.append(ll)
-        return torch.stack(out, 1)
+    def _state_log_likelihood(self, h: torch.Tensor, z: torch.Tensor, actions: torch.Tensor, clamp: float) -> torch.Tensor:
+        """``log p(a | h, z)`` for GRU states ``h (..., hidden)`` and true actions ``(..., 6)``; the rotation
+        factor is conditioned on the true v; each 3-D factor clamped at ``clamp``."""
+        if self.factorized_rotation:
+            v, w = actions[..., :3], actions[..., 3:]
+            return self.translation(h, z).log_prob(v).clamp(max=clamp) + self.rotation(h, z, v).log_prob(w).clamp(max=clamp)
+        return self.joint(h, z).log_prob(actions).clamp(max=2 * clamp)
 
     def log_likelihood(self, start: DecoderStart, prev_action: torch.Tensor, actions: torch.Tensor,
                        clamp: float, teacher_forcing: bool = True) -> torch.Tensor:
-        """Per-step ``log p(a_t | h_t, z)``, each 3-D factor clamped at ``clamp``; teacher-forced
-        (the GRU reads the true a_{t-1}) unless ``teacher_forcing=False``.
+        """Per-step ``log p(a_t | h_t, z)``, each 3-D factor clamped at ``clamp``.
+
+        Teacher-forced, the GRU reads the true a_{t-1}; otherwise (``teacher_forcing=False``) it reads
+        its own most likely action (detached), as at inference, so the horizon must be predicted
+        from ``h0`` rather than from a_{t-1}.
 
         Args:
             prev_action: ``(R, 6)`` a_{-1}. actions: ``(R, H, 6)`` true a_0..a_{H-1} (network units).
         Returns:
-            ``(R, H)`` log-likelihoods (rotation teacher-forced with the true v_t).
+            ``(R, H)`` log-likelihoods (rotation conditioned on the true v_t).
         """
         horizon = actions.shape[1]
         if not teacher_forcing:
-            return self._free_running_log_likelihood(start, prev_action, actions, clamp)
+            state, action, out = start.state, prev_action, []
+            for t in range(horizon):
+                state = self.step(start, action, state)
+                out.append(self._state_log_likelihood(state[0], start.z, actions[:, t], clamp))
+                action = self.mode_action(state[0], start.z).detach()
+            return torch.stack(out, 1)
         inputs_prev = torch.cat([prev_action[:, None], actions[:, :-1]], 1)
         static = start.static_input[:, None].expand(-1, horizon, -1)
         h, _ = self.gru(torch.cat([static, inputs_prev], -1), start.state)  # (R, H, hidden)
-        z = start.z[:, None].expand(-1, horizon, -1)
-        v, w = actions[..., :3], actions[..., 3:]
-        if self.factorized_rotation:
-            log_v = self.translation(h, z).log_prob(v).clamp(max=clamp)
-            log_w = self.rotation(h, z, v).log_prob(w).clamp(max=clamp)
-            return log_v + log_w
-        return self.joint(h, z).log_prob(actions).clamp(max=2 * clamp)
+        return self._state_log_likelihood(h, start.z[:, None].expand(-1, horizon, -1), actions, clamp)
 
     def step(self, start: DecoderStart, prev_action: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """One GRU step: ``(R, 6)`` a_{t-1}, ``(1, R, hidden)`` h_{t-1} -> ``(1, R, hidden)`` h_t."""
