@@ -15,6 +15,7 @@ from rtv3_maniskill import features as ft
 from rtv3_maniskill import se3
 from rtv3_maniskill.evaluation.planning import context_mask
 from rtv3_maniskill.shared_control.env_wrapper import load_rtv3_policy
+from rtv3_maniskill.tasks.grasp_sampler import PREGRASP_DISTANCE
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +46,7 @@ def test_shipped_checkpoint_heads_for_the_goal_it_is_given(policy):
             chunk = policy.predict_action_chunk(ctx)[0].double()  # (H, 6) body twists
             end = se3.integrate_body_twists(tcp, chunk, ft.DT)[-1]
             moved = end[:3, 3] - tcp[:3, 3]
-            pregrasp = se3.translate_along_z(base.grasp_poses[0, g].double(), -0.05)[:3, 3]
+            pregrasp = se3.translate_along_z(base.grasp_poses[0, g].double(), -PREGRASP_DISTANCE)[:3, 3]
             displacements.append(moved)
             towards.append(float(torch.nn.functional.cosine_similarity(moved, pregrasp - tcp[:3, 3], 0)))
     finally:

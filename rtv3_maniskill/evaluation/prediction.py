@@ -294,14 +294,14 @@ def step0_calibration(mixture: Any, true_translation: torch.Tensor, alpha: float
     perfect user: a calibrated prior covers ~``alpha``); ``nll`` the mixture's negative
     log-likelihood (nats); ``sigma_ml`` the geometric-mean standard deviation of the ML class (m/s).
     """
-    from scipy.stats import chi2
+    from rtv3_maniskill.shared_control import posterior
 
-    threshold = float(chi2.ppf(alpha, 3))
+    threshold = posterior.ood_threshold(alpha, 3)
     mu, cov = mixture.trans_mean.double(), mixture.trans_cov.double()
-    diff = (true_translation.double()[:, None] - mu)[..., None]  # (B, K, 3, 1)
-    maha = (diff.transpose(-1, -2) @ torch.linalg.solve(cov, diff))[..., 0, 0]  # (B, K)
+    true_v = true_translation.double()[:, None]  # (B, 1, 3) against K classes
+    maha = posterior.mahalanobis_sq(true_v, mu, cov)  # (B, K)
+    log_n = posterior.gaussian_log_prob(true_v, mu, cov)
     log_det = torch.linalg.slogdet(cov)[1]
-    log_n = -0.5 * (maha + log_det + 3 * math.log(2 * math.pi))
     best = mixture.log_weights.argmax(-1)
     rows = torch.arange(best.shape[0])
     return dict(

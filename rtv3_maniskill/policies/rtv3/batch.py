@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from rtv3_maniskill import features as ft
-from rtv3_maniskill.policies.rtv3.configuration_rtv3 import ENV_STATE
+from rtv3_maniskill.policies.rtv3.configuration_rtv3 import ENV_STATE, GRASP_SUBSET_SIZES
 
 
 @dataclass
@@ -167,7 +167,7 @@ def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int 
     elif sizes == "uniform":
         keep_n = low + (u * (n_valid - low + 1).float()).long().clamp(max=n_valid - low)
     else:
-        raise ValueError(f"sizes must be 'uniform' or 'log_uniform', got {sizes!r}")
+        raise ValueError(f"sizes must be one of {GRASP_SUBSET_SIZES}, got {sizes!r}")
     priority = torch.rand(batch, count, device=mask.device)
     priority = priority.masked_fill(~mask, 2.0)
     priority.scatter_(1, safe_target[:, None], -1.0)

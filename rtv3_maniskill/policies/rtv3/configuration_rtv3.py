@@ -20,6 +20,9 @@ from torch.optim.lr_scheduler import LambdaLR
 
 from rtv3_maniskill import features as ft
 
+GRASP_SUBSET_SIZES = ("uniform", "log_uniform")
+"""Distributions of the grasp-subset size (``grasp_subset_sizes``; see ``batch.subsample_grasps``)."""
+
 LATENT_TRAINING_MODES = ("enumerate", "sample")
 ENV_STATE = "observation.environment_state"
 """LeRobot's packed environment-state key (``features.pack_context`` layout)."""
@@ -197,8 +200,8 @@ class RTV3Config(PreTrainedConfig):
         self.point_channels = tuple(int(c) for c in self.point_channels)
         self.point_heads = tuple(int(h) for h in self.point_heads)
         self.point_depths = tuple(int(d) for d in self.point_depths)
-        if self.grasp_subset_sizes not in ("uniform", "log_uniform"):
-            raise ValueError(f"grasp_subset_sizes must be 'uniform' or 'log_uniform', got {self.grasp_subset_sizes!r}")
+        if self.grasp_subset_sizes not in GRASP_SUBSET_SIZES:
+            raise ValueError(f"grasp_subset_sizes must be one of {GRASP_SUBSET_SIZES}, got {self.grasp_subset_sizes!r}")
         positive_ints = {
             "n_obs_steps": self.n_obs_steps,
             "horizon": self.horizon,
