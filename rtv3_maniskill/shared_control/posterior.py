@@ -199,8 +199,8 @@ def fuse_user_command(
         user_rot_cov: ``(B, 3, 3)`` ``G_u`` (the paper's Gamma^sys).
         reweight_rotation_at: ``"prior"`` (paper: rotation term of the class likelihood at
             ``omega_k(mu_k)``) or ``"fused"`` (NOTES.md: at ``omega_k(mu_k')``).
-        prior: optional :func:`prior_twist_mixture` of the same ``mixture``; its rotation
-            Gaussians are reused instead of calling ``rotation_given_translation(mu_k)`` again.
+        prior: optional :func:`prior_twist_mixture` of the same ``mixture``; its class weights,
+            translation Gaussians and rotation Gaussians are reused instead of recomputed.
     Returns:
         The fused mixture; ``log_weights`` are ``log pi_k'``.
     """
@@ -222,9 +222,12 @@ def fuse_user_command(
     v_u = user[:, None, :3].expand(b, k, 3)
     w_u = user[:, None, 3:].expand(b, k, 3)
 
-    prior_lw = _normalize_log_weights(mixture.log_weights.double())
-    mu = mixture.trans_mean.double()
-    sigma = regularize_covariance(mixture.trans_cov.double())
+    if prior is not None:  # already normalised / regularised by prior_twist_mixture
+        prior_lw, mu, sigma = prior.prior_log_weights, prior.trans_mean, prior.trans_cov
+    else:
+        prior_lw = _normalize_log_weights(mixture.log_weights.double())
+        mu = mixture.trans_mean.double()
+        sigma = regularize_covariance(mixture.trans_cov.double())
 
     # Translation: Kalman fusion per class (Eq. K_v).
     mu_f, sigma_f, _ = kalman_update(mu, sigma, v_u, s_u)
@@ -262,21 +265,33 @@ def fuse_user_command(
 # --------------------------------------------------------------------------- mode search
 
 
-def _component_precisions(m: FactorizedTwistMixture) -> torch.Tensor:
-    """``(B, K, 6, 6)`` block-diagonal precision of each class."""
+def _whitened_components(m: FactorizedTwistMixture) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-class whitening of the 6-D mixture, computed once per mixture.
+
+    Returns ``W (B, K, 6, 6)`` block-diagonal with ``W_k^T W_k = P_k`` (the class precision;
+    ``W_k = blockdiag(L_v^-1, L_w^-1)`` from the Cholesky factors) and ``log_norm (B, K) =
+    log pi_k - 3 log 2pi - log det L_k``, so that ``log pi_k + log N_k(x) = log_norm_k -
+    0.5 |W_k (x - m_k)|^2``.
+    """
     b, k = m.log_weights.shape
-    prec = torch.zeros(b, k, 6, 6, dtype=m.trans_cov.dtype, device=m.trans_cov.device)
-    prec[..., :3, :3] = torch.linalg.inv(m.trans_cov)
-    prec[..., 3:, 3:] = torch.linalg.inv(m.rot_cov)
-    return 0.5 * (prec + prec.transpose(-1, -2))
+    eye = torch.eye(3, dtype=m.trans_cov.dtype, device=m.trans_cov.device)
+    whiten = m.trans_cov.new_zeros(b, k, 6, 6)
+    log_det = m.log_weights.new_zeros(b, k)
+    for block, cov in ((slice(0, 3), m.trans_cov), (slice(3, 6), m.rot_cov)):
+        chol = torch.linalg.cholesky(cov)
+        whiten[..., block, block] = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
+        log_det = log_det + torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)
+    return whiten, m.log_weights - 3.0 * _LOG_2PI - log_det
 
 
-def _component_log_densities(x: torch.Tensor, m: FactorizedTwistMixture) -> torch.Tensor:
+def _component_log_densities(
+    x: torch.Tensor, m: FactorizedTwistMixture, whitened: tuple[torch.Tensor, torch.Tensor] | None = None
+) -> torch.Tensor:
     """``x (B, S, 6)`` -> ``(B, S, K)`` ``log pi_k + log N_k(x)``."""
-    xs = x[:, :, None, :]
-    lp_v = gaussian_log_prob(xs[..., :3], m.trans_mean[:, None], m.trans_cov[:, None])
-    lp_w = gaussian_log_prob(xs[..., 3:], m.rot_mean[:, None], m.rot_cov[:, None])
-    return m.log_weights[:, None, :] + lp_v + lp_w
+    whiten, log_norm = _whitened_components(m) if whitened is None else whitened
+    diff = x[:, :, None, :] - m.means[:, None]  # (B, S, K, 6)
+    white = torch.einsum("bkij,bskj->bski", whiten, diff)
+    return log_norm[:, None] - 0.5 * (white * white).sum(-1)
 
 
 def mixture_log_density(x: torch.Tensor, mixture: FactorizedTwistMixture) -> torch.Tensor:
@@ -299,21 +314,22 @@ def mixture_mode(mixture: FactorizedTwistMixture, num_starts: int = 3, num_iters
         raise ValueError(f"num_starts must be >= 1 and num_iters >= 0, got {num_starts}, {num_iters}")
     means = mixture.means  # (B, K, 6)
     b, k, _ = means.shape
-    at_means = torch.logsumexp(_component_log_densities(means, mixture), -1)  # (B, K)
+    whitened = _whitened_components(mixture)  # factorised once, reused by every iteration
+    at_means = torch.logsumexp(_component_log_densities(means, mixture, whitened), -1)  # (B, K)
     s = min(num_starts, k)
     start_idx = at_means.topk(s, dim=-1).indices  # (B, S)
     x = torch.gather(means, 1, start_idx[..., None].expand(b, s, 6))
     candidates = [x]
-    precisions = _component_precisions(mixture)  # (B, K, 6, 6)
+    precisions = whitened[0].transpose(-1, -2) @ whitened[0]  # P_k = W_k^T W_k, (B, K, 6, 6)
     prec_means = (precisions @ means.unsqueeze(-1)).squeeze(-1)  # (B, K, 6)
     for _ in range(num_iters):
-        resp = torch.softmax(_component_log_densities(x, mixture), -1)  # (B, S, K)
+        resp = torch.softmax(_component_log_densities(x, mixture, whitened), -1)  # (B, S, K)
         a = torch.einsum("bsk,bkij->bsij", resp, precisions)
         rhs = torch.einsum("bsk,bki->bsi", resp, prec_means)
         x = torch.linalg.solve(a, rhs.unsqueeze(-1)).squeeze(-1)
         candidates.append(x)
     cand = torch.cat(candidates, 1)  # (B, S*(iters+1), 6)
-    dens = mixture_log_density(cand, mixture)
+    dens = torch.logsumexp(_component_log_densities(cand, mixture, whitened), -1)
     dens = torch.where(torch.isfinite(dens), dens, torch.full_like(dens, -math.inf))
     best = dens.argmax(-1)
     return cand[torch.arange(b), best]

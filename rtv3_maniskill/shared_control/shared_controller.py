@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any, Protocol
 
 import torch
@@ -100,27 +101,27 @@ class SharedControlDiagnostics:
         class_weights: ``(B, K)`` posterior class weights in shared mode, the prior's otherwise
             (empty ``(B, 0)`` when the policy was not called).
         prior_class_weights: ``(B, K)`` the prior's class weights.
-        trans_entropy_lower, trans_entropy_upper, rot_entropy_lower, rot_entropy_upper:
-            ``(B,)`` entropy bounds (nats) of the mixture behind ``class_weights`` (NaN when the
-            policy was not called).
         ood: ``(B,)`` bool, in the out-of-distribution window.
         surface_distance: ``(B,)`` EE distance to the nearest valid scene point (m; inf if none).
         user_trans_cov, user_rot_cov: ``(B, 3, 3)`` S_u and G_u used this step.
         fallback: ``(B,)`` bool, the empty-grasp-set fallback was used.
+        mixture: the step-0 mixture behind ``class_weights`` (fused where shared, the prior's
+            elsewhere); None when the policy was not called.
+
+    The entropy bounds ``trans_entropy_lower``, ``trans_entropy_upper``, ``rot_entropy_lower``,
+    ``rot_entropy_upper`` (``(B,)`` nats, NaN when the policy was not called) are computed from
+    ``mixture`` when first read, so a control loop that does not look at them does not pay for them.
     """
 
     modes: tuple[str, ...]
     class_weights: torch.Tensor
     prior_class_weights: torch.Tensor
-    trans_entropy_lower: torch.Tensor
-    trans_entropy_upper: torch.Tensor
-    rot_entropy_lower: torch.Tensor
-    rot_entropy_upper: torch.Tensor
     ood: torch.Tensor
     surface_distance: torch.Tensor
     user_trans_cov: torch.Tensor
     user_rot_cov: torch.Tensor
     fallback: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
+    mixture: posterior.FactorizedTwistMixture | None = None
 
     @property
     def mode(self) -> str:
@@ -128,6 +129,29 @@ class SharedControlDiagnostics:
         if len(self.modes) != 1:
             raise ValueError(f"batched step with {len(self.modes)} elements: use .modes")
         return self.modes[0]
+
+    @cached_property
+    def _entropy_bounds(self) -> tuple[torch.Tensor, ...]:
+        if self.mixture is None:
+            nan = torch.full((len(self.modes),), math.nan, dtype=torch.float64)
+            return nan, nan.clone(), nan.clone(), nan.clone()
+        return (*posterior.translation_entropy_bounds(self.mixture), *posterior.rotation_entropy_bounds(self.mixture))
+
+    @property
+    def trans_entropy_lower(self) -> torch.Tensor:
+        return self._entropy_bounds[0]
+
+    @property
+    def trans_entropy_upper(self) -> torch.Tensor:
+        return self._entropy_bounds[1]
+
+    @property
+    def rot_entropy_lower(self) -> torch.Tensor:
+        return self._entropy_bounds[2]
+
+    @property
+    def rot_entropy_upper(self) -> torch.Tensor:
+        return self._entropy_bounds[3]
 
 
 def surface_distance(observation: dict[str, Any]) -> torch.Tensor:
@@ -252,9 +276,8 @@ class SharedController:
         action = user.clone()
         modes = ["user_only"] * b
         ood = in_window.clone()
-        nan = torch.full((b,), math.nan, dtype=torch.float64)
         weights = prior_weights = torch.zeros(b, 0, dtype=torch.float64)
-        ent = [nan.clone(), nan.clone(), nan.clone(), nan.clone()]
+        shown: posterior.FactorizedTwistMixture | None = None
 
         if not bool(no_grasps.all()):
             mixture = self.policy.predict_step0_mixture(observation)
@@ -294,7 +317,6 @@ class SharedController:
                 )
             prior_weights = prior.weights
             weights = shown.weights
-            ent = [*posterior.translation_entropy_bounds(shown), *posterior.rotation_entropy_bounds(shown)]
         self._user_cov.update(user, active)
 
         action = clamp_twist_speed(action, c.max_linear_speed, c.max_angular_speed)
@@ -304,15 +326,12 @@ class SharedController:
             modes=tuple(modes),
             class_weights=weights,
             prior_class_weights=prior_weights,
-            trans_entropy_lower=ent[0],
-            trans_entropy_upper=ent[1],
-            rot_entropy_lower=ent[2],
-            rot_entropy_upper=ent[3],
             ood=ood,
             surface_distance=dist,
             user_trans_cov=s_u,
             user_rot_cov=g_u,
             fallback=no_grasps,
+            mixture=shown,
         )
         out_dtype = torch.float32
         return action[0].to(out_dtype) if unbatched else action.to(out_dtype)
