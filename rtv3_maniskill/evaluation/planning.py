@@ -91,6 +91,20 @@ def planning_distance(tcp_pose: torch.Tensor, grasp_poses: torch.Tensor) -> torc
     return se3.symmetric_pose_distance(target, tcp_pose[..., None, :, :].to(target.dtype), se3.PLANNING_ROT_WEIGHT)
 
 
+def trace_step(step: int, tcp_pose: torch.Tensor, grasp_pose: torch.Tensor, twist: torch.Tensor,
+               distance: float, collision: bool) -> dict[str, float]:
+    """One row of a trial trace: the TCP's translation (m) and rotation (deg) error to the grasp's
+    pre-grasp (the nearer of it and its pi-about-z twin) and the commanded speeds (m/s, rad/s)."""
+    pre = pregrasp_poses(grasp_pose.double())
+    errors = []
+    for target in (pre, se3.rotate_about_z(pre, math.pi)):
+        error = se3.relative_transform(target, tcp_pose.double())
+        errors.append((float(error[:3, 3].norm()), math.degrees(float(se3.so3_log(error[:3, :3]).norm()))))
+    translation_error, rotation_error = min(errors, key=lambda e: e[1])
+    return dict(step=step, distance=distance, translation_error=translation_error, rotation_error_deg=rotation_error,
+                linear_speed=float(twist[:3].norm()), angular_speed=float(twist[3:].norm()), collision=float(collision))
+
+
 def is_planning_success(distance: torch.Tensor | float, threshold: float = PLANNING_SUCCESS_THRESHOLD) -> torch.Tensor:
     """``distance < threshold`` (strict), elementwise."""
     return torch.as_tensor(distance) < threshold
@@ -387,8 +401,12 @@ class PlanningBenchmark:
                 return q, attempt
         return None, self.config.start_pose_attempts
 
-    def run_trial(self, grasp: int) -> dict[str, Any]:
-        """One trial towards grasp ``grasp`` of the loaded scene; a ``planning_trials.csv`` row."""
+    def run_trial(self, grasp: int, trace: list[dict[str, float]] | None = None) -> dict[str, Any]:
+        """One trial towards grasp ``grasp`` of the loaded scene; a ``planning_trials.csv`` row.
+
+        With a ``trace`` list, one dict per step is appended (:func:`trace_step`): where the
+        closed loop goes wrong, translation or rotation.
+        """
         start_time = time.perf_counter()
         valid = self.base.grasps_mask[0] > 0.5
         context = torch.zeros_like(valid)
@@ -415,8 +433,12 @@ class PlanningBenchmark:
             twist = self.policy.select_action(self._observation(obs, grasp))
             command = torch.cat([twist.reshape(1, 6).float().cpu(), torch.tensor([[GRIPPER_OPEN]])], -1)
             obs, _, _, _, info = self.env.step(command)
-            distances = planning_distance(self.base.tcp_pose_matrix[0].double(), context_poses)
+            tcp = self.base.tcp_pose_matrix[0].double()
+            distances = planning_distance(tcp, context_poses)
             min_distance = min(min_distance, float(distances.min()))
+            if trace is not None:
+                trace.append(trace_step(step, tcp, context_poses[int(distances.argmin())], twist.reshape(6),
+                                        float(distances.min()), bool(info["collision"][0])))
             reached = bool(is_planning_success(distances.min(), self.config.threshold))
             decided = trial_outcome(collision=bool(info["collision"][0]), success=reached)
             if decided is not None:
