@@ -1,6 +1,6 @@
 """Benchmark the RT-V3 policy on CPU: ``select_action`` latency and training throughput.
 
-Usage: ``python scripts/benchmark_policy.py [--threads 2] [--steps 200] [--train-batches 5]``
+Usage: ``python scripts/benchmark_policy.py [--threads 2] [--steps 200] [--train-batches 5] [--policy.path DIR]``
 
 Inputs are synthetic but shaped like the dataset (N = 2048 points, M = 64 grasps, T = 8, H = 12).
 """
@@ -55,14 +55,22 @@ def main() -> None:
     parser.add_argument("--train-batches", type=int, default=5)
     parser.add_argument("--train-batch-size", type=int, default=64)
     parser.add_argument("--point-patch-size", type=int, default=None, help="override the PTv3 patch size (120)")
+    parser.add_argument("--policy.path", dest="policy_path", default=None,
+                        help="time a checkpoint with its own N and M (e.g. the shipped one, N = 512) instead of "
+                             "an untrained default-size policy (N = 2048, M = 64)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
 
-    overrides = {} if args.point_patch_size is None else {"point_patch_size": args.point_patch_size}
-    cfg = RTV3Config(device="cpu", **overrides)
-    policy = RTV3Policy(cfg)
-    print(f"parameters: {sum(p.numel() for p in policy.parameters()):,}  threads: {torch.get_num_threads()}")
+    if args.policy_path is not None:
+        policy = RTV3Policy.from_pretrained(args.policy_path)
+        cfg = policy.config
+    else:
+        overrides = {} if args.point_patch_size is None else {"point_patch_size": args.point_patch_size}
+        cfg = RTV3Config(device="cpu", **overrides)
+        policy = RTV3Policy(cfg)
+    print(f"parameters: {sum(p.numel() for p in policy.parameters()):,}  threads: {torch.get_num_threads()}  "
+          f"N={cfg.num_points} M={cfg.max_grasps}")
 
     full = synthetic_batch(1, cfg)
     single = {k: v for k, v in full.items() if k.startswith("observation.")}
