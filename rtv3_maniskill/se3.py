@@ -21,18 +21,20 @@ import torch
 _EPS = 1e-6
 
 
+def _skew_map() -> torch.Tensor:
+    """Constant ``(3, 9)``: ``w @ map`` is the flattened ``[w]_x``."""
+    m = torch.zeros(3, 9, dtype=torch.float64)
+    for axis, (row, col), sign in ((2, (0, 1), -1), (1, (0, 2), 1), (2, (1, 0), 1), (0, (1, 2), -1), (1, (2, 0), -1), (0, (2, 1), 1)):
+        m[axis, 3 * row + col] = sign
+    return m
+
+
+_SKEW = _skew_map()
+
+
 def skew(w: torch.Tensor) -> torch.Tensor:
     """``(..., 3) -> (..., 3, 3)`` cross-product matrix ``[w]_x``."""
-    zero = torch.zeros_like(w[..., 0])
-    wx, wy, wz = w.unbind(-1)
-    return torch.stack(
-        [
-            torch.stack([zero, -wz, wy], -1),
-            torch.stack([wz, zero, -wx], -1),
-            torch.stack([-wy, wx, zero], -1),
-        ],
-        -2,
-    )
+    return (w @ _SKEW.to(w)).reshape(*w.shape[:-1], 3, 3)
 
 
 def _so3_coefficients(theta: torch.Tensor):
@@ -148,36 +150,57 @@ def integrate_body_twists(start: torch.Tensor, twists: torch.Tensor, dt: float) 
 # --------------------------------------------------------------------------- quaternions
 
 
+def _quat_matrix_map() -> torch.Tensor:
+    """Constant ``(16, 9)``: the flattened outer product ``q q^T`` (wxyz) times it is the rotation
+    matrix of a unit quaternion (homogeneous form, e.g. ``R00 = ww + xx - yy - zz``)."""
+    w, x, y, z = range(4)
+    entries = [
+        [(w, w, 1), (x, x, 1), (y, y, -1), (z, z, -1)], [(x, y, 2), (w, z, -2)], [(x, z, 2), (w, y, 2)],
+        [(x, y, 2), (w, z, 2)], [(w, w, 1), (x, x, -1), (y, y, 1), (z, z, -1)], [(y, z, 2), (w, x, -2)],
+        [(x, z, 2), (w, y, -2)], [(y, z, 2), (w, x, 2)], [(w, w, 1), (x, x, -1), (y, y, -1), (z, z, 1)],
+    ]
+    m = torch.zeros(16, 9, dtype=torch.float64)
+    for out, terms in enumerate(entries):
+        for a, b, coef in terms:
+            m[4 * a + b, out] += coef
+    return m
+
+
+_QUAT_MATRIX = _quat_matrix_map()
+
+
 def quat_to_matrix(quat: torch.Tensor) -> torch.Tensor:
     """Unit quaternion ``(..., 4)`` wxyz -> rotation matrix ``(..., 3, 3)``."""
     quat = quat / quat.norm(dim=-1, keepdim=True)
-    w, x, y, z = quat.unbind(-1)
-    return torch.stack(
-        [
-            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
+    outer = (quat[..., :, None] * quat[..., None, :]).reshape(*quat.shape[:-1], 16)
+    return (outer @ _QUAT_MATRIX.to(quat)).reshape(*quat.shape[:-1], 3, 3)
+
+
+def _linear_map(rows: list[dict[str, float]]) -> torch.Tensor:
+    """Constant ``(R, 10)`` map from ``[1, m00, m01, ..., m22]`` (a flattened 3x3 plus a one) to R outputs."""
+    keys = ["1"] + [f"m{i}{j}" for i in range(3) for j in range(3)]
+    return torch.tensor([[row.get(k, 0.0) for k in keys] for row in rows], dtype=torch.float64)
+
+
+# Shepperd's method: four candidate (unnormalised) quaternions wxyz, each well conditioned when
+# its "diagonal" entry below is the largest; written as one linear map of the matrix entries.
+_QUAT_CANDIDATES = _linear_map([
+    {"1": 1, "m00": 1, "m11": 1, "m22": 1}, {"m21": 1, "m12": -1}, {"m02": 1, "m20": -1}, {"m10": 1, "m01": -1},
+    {"m21": 1, "m12": -1}, {"1": 1, "m00": 1, "m11": -1, "m22": -1}, {"m01": 1, "m10": 1}, {"m02": 1, "m20": 1},
+    {"m02": 1, "m20": -1}, {"m01": 1, "m10": 1}, {"1": 1, "m00": -1, "m11": 1, "m22": -1}, {"m12": 1, "m21": 1},
+    {"m10": 1, "m01": -1}, {"m02": 1, "m20": 1}, {"m12": 1, "m21": 1}, {"1": 1, "m00": -1, "m11": -1, "m22": 1},
+])
+_QUAT_PIVOTS = _linear_map([{"m00": 1, "m11": 1, "m22": 1}, {"m00": 1}, {"m11": 1}, {"m22": 1}])
 
 
 def matrix_to_quat(rot: torch.Tensor) -> torch.Tensor:
     """Rotation matrix ``(..., 3, 3)`` -> unit quaternion ``(..., 4)`` wxyz with ``w >= 0``."""
-    m = rot
-    trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
-    # Four candidate solutions; pick the best-conditioned per element (Shepperd's method).
-    cands = torch.stack(
-        [
-            torch.stack([1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
-            torch.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2], m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
-            torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], m[..., 1, 2] + m[..., 2, 1]], -1),
-            torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2]], -1),
-        ],
-        -2,
-    )  # (..., 4 candidates, 4)
-    diag = torch.stack([trace, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], -1)
-    best = diag.argmax(-1)
+    lead = rot.shape[:-2]
+    entries = torch.cat([torch.ones(*lead, 1, dtype=rot.dtype, device=rot.device), rot.reshape(*lead, 9)], -1)
+    maps = torch.cat([_QUAT_CANDIDATES, _QUAT_PIVOTS]).to(rot)
+    out = entries @ maps.T  # (..., 20): 4 candidates x 4, then the 4 pivots [trace, m00, m11, m22]
+    cands = out[..., :16].reshape(*lead, 4, 4)
+    best = out[..., 16:].argmax(-1)
     quat = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4))[..., 0, :]
     quat = quat / quat.norm(dim=-1, keepdim=True)
     return torch.where(quat[..., :1] < 0, -quat, quat)
