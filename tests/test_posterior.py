@@ -212,6 +212,16 @@ def test_mode_is_at_least_as_dense_as_random_samples():
     assert posterior.mixture_log_density(posterior.mixture_mode(m)[:, None], m)[0, 0] >= best_sample
 
 
+def test_mode_search_stopping_early_finds_the_same_mode():
+    # Two overlapping classes: the mode is not a component mean, so the iteration does the work.
+    m = _factorized([0.6, 0.4], [[-0.05, 0.02, 0, 0.1, 0, 0], [0.05, 0, 0, 0, 0.1, 0]], [0.01, 0.02], [0.01, 0.03])
+    full = posterior.mixture_mode(m, num_iters=200, tol=0.0)
+    torch.testing.assert_close(posterior.mixture_mode(m, tol=1e-6), full, atol=1e-5, rtol=0)
+    assert not torch.allclose(posterior.mixture_mode(m, num_iters=0), full, atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="tol"):
+        posterior.mixture_mode(m, tol=float("nan"))
+
+
 def test_entropy_bounds_bracket_monte_carlo_entropy():
     gen = torch.Generator().manual_seed(4)
     k = 3

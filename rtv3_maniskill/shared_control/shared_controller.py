@@ -78,6 +78,9 @@ class SharedControlConfig:
     """See :func:`posterior.fuse_user_command` ("prior" = paper, "fused" = NOTES.md)."""
     mode_search_starts: int = 3
     mode_search_iters: int = 10
+    """Most mean-shift iterations of the mode search (:func:`posterior.mixture_mode`)."""
+    mode_search_tol: float = 1e-6
+    """Stop the mode search once no iterate moves by more than this (m/s, rad/s)."""
 
     def __post_init__(self) -> None:
         check_speed_limits(self.max_linear_speed, self.max_angular_speed)
@@ -87,8 +90,9 @@ class SharedControlConfig:
             raise ValueError(f"ood_steps must be >= 0, got {self.ood_steps}")
         if self.reweight_rotation_at not in ("prior", "fused"):
             raise ValueError(f"reweight_rotation_at must be 'prior' or 'fused', got {self.reweight_rotation_at!r}")
-        if self.mode_search_starts < 1 or self.mode_search_iters < 0:
-            raise ValueError("mode_search_starts must be >= 1 and mode_search_iters >= 0")
+        if self.mode_search_starts < 1 or self.mode_search_iters < 0 or not self.mode_search_tol >= 0:
+            raise ValueError("need mode_search_starts >= 1, mode_search_iters >= 0 and mode_search_tol >= 0, got "
+                             f"{self.mode_search_starts}, {self.mode_search_iters}, {self.mode_search_tol}")
         posterior.ood_threshold(self.ood_alpha)  # validates alpha
 
 
@@ -297,7 +301,7 @@ class SharedController:
                 autonomous = torch.zeros_like(autonomous)
             if shared.any():
                 assert fused is not None
-                mode = posterior.mixture_mode(fused, c.mode_search_starts, c.mode_search_iters)
+                mode = posterior.mixture_mode(fused, c.mode_search_starts, c.mode_search_iters, c.mode_search_tol)
                 action = torch.where(shared[:, None], mode, action)
             if autonomous.any():
                 action = torch.where(autonomous[:, None], most_likely_twist(mixture).double(), action)
