@@ -126,7 +126,8 @@ def main() -> None:
             ax.bar([j + i * width for j in range(len(names))], [scale * table[r][key] for r in table], width, label=key)
         ax.set_xticks([j + 0.4 - width / 2 for j in range(len(names))], names, rotation=15, fontsize=8)
         ax.set_title(title)
-        ax.legend()
+        ax.set_ylim(top=1.3 * ax.get_ylim()[1])  # head room for the legend
+        ax.legend(ncol=len(keys), loc="upper center", fontsize=8)
     fig.suptitle(f"RT-V3 ablations at {step} training steps each")
     fig.tight_layout()
     fig.savefig(args.runs / "table1.png", dpi=120)

@@ -183,6 +183,21 @@ def test_benchmark_writes_results_and_resumes_without_duplicates(tmp_path):
         run_benchmark(changed, progress=False)
 
 
+def test_benchmark_refuses_to_resume_with_other_weights_at_the_same_path(tmp_path):
+    from rtv3_maniskill.shared_control.benchmark import _check_config
+
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    (ckpt / "model.safetensors").write_bytes(b"old weights")
+    config = BenchmarkConfig(output=tmp_path / "out", scenes=1, methods=["rtv3"])
+    config.output.mkdir()
+    _check_config(config.output, config.fingerprint(ckpt))
+    _check_config(config.output, config.fingerprint(ckpt))  # same weights: resumes
+    (ckpt / "model.safetensors").write_bytes(b"new weights")  # retrained in place
+    with pytest.raises(BenchmarkError, match="policy_weights_sha256"):
+        _check_config(config.output, config.fingerprint(ckpt))
+
+
 def test_bad_inputs_give_clear_errors(env, policy, tmp_path):
     with pytest.raises(ValueError, match="unknown simulated user"):
         make_user("telepath")

@@ -22,6 +22,7 @@ same noise.
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import math
 import time
@@ -100,12 +101,27 @@ class BenchmarkConfig:
         return [self.seed * SCENE_SEED_STRIDE + i for i in range(self.scenes)]
 
     def fingerprint(self, policy_path: Path | None) -> dict[str, Any]:
-        """Settings that change every trial's outcome: a resumed run must match them."""
+        """Settings that change every trial's outcome: a resumed run must match them. The policy
+        is identified by its path *and* the SHA-256 of its weights, so a checkpoint replaced in
+        place is not mixed with results of the old one."""
         return dict(
             seed=self.seed, max_steps=self.max_steps, obs_mode=self.obs_mode, rendered_context=self.rendered_context,
             scene_type=self.scene_type, ho_variant=self.ho_variant, max_grasps_per_scene=self.max_grasps_per_scene,
-            policy_path=str(policy_path.resolve()) if policy_path is not None else None, **self.extra,
+            policy_path=str(policy_path.resolve()) if policy_path is not None else None,
+            policy_weights_sha256=weights_digest(policy_path) if policy_path is not None else None, **self.extra,
         )
+
+
+def weights_digest(policy_path: Path) -> str | None:
+    """SHA-256 (hex) of ``policy_path/model.safetensors``; None when the file is missing."""
+    weights = Path(policy_path) / "model.safetensors"
+    if not weights.is_file():
+        return None
+    digest = hashlib.sha256()
+    with open(weights, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
 
 
 def _canonical(name: str) -> str:
