@@ -16,7 +16,7 @@ from rtv3_maniskill import features as ft
 from rtv3_maniskill import se3
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
-from rtv3_maniskill.policies.rtv3.point_encoder import _spread_bits, morton_code
+from rtv3_maniskill.policies.rtv3.point_encoder import PointTransformerEncoder, _spread_bits, morton_code
 from rtv3_maniskill.twist_mixture import TwistMixture
 
 SMALL = dict(num_points=256, max_grasps=16)
@@ -193,6 +193,23 @@ def test_morton_code_interleaves_bits():
     grid = torch.tensor([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]])
     assert morton_code(grid).tolist() == [1, 2, 4, 7]
     assert morton_code(grid, "z-trans").tolist() == [2, 1, 4, 7]
+
+
+def test_point_encoder_sample_alone_equals_sample_in_a_batch():
+    # B = 1 takes the unpadded fast path (full patches + a shorter last one); a batch pads every
+    # sample to whole patches and masks. Both must encode a cloud identically.
+    torch.manual_seed(0)
+    enc = PointTransformerEncoder(6, (16, 16), (2, 2), (1, 1), patch_size=32, grid_size=0.02, position_scale=1.0).eval()
+    xyz, feat = torch.rand(2, 150, 3) * 0.4, torch.rand(2, 150, 6)
+    mask = torch.ones(2, 150, dtype=torch.bool)
+    mask[1, 97:] = False  # the second cloud is shorter: patches end mid-way
+    with torch.no_grad():
+        tokens, token_mask = enc(xyz, feat, mask)
+        for i in range(2):
+            alone, alone_mask = enc(xyz[i : i + 1], feat[i : i + 1], mask[i : i + 1])
+            n = int(alone_mask.sum())
+            assert int(token_mask[i].sum()) == n
+            torch.testing.assert_close(alone[0, :n], tokens[i][token_mask[i]], atol=1e-5, rtol=1e-5)
 
 
 # ----------------------------------------------------------------------------- shapes and masks

@@ -118,21 +118,24 @@ class PatchAttention(nn.Module):
             return feat
         p, h = self.patch_size, self.heads
         qkv = self.qkv(feat)
-        if batch_size == 1:  # contiguous layout: pad only at the end (fast path for inference)
-            total = (length + p - 1) // p * p
-            qkv = F.pad(qkv, (0, 0, 0, total - length))
-            valid = torch.arange(total, device=feat.device) < length
-            dest = None
-        else:
-            dest, total = _patch_layout(batch, batch_size, p)
-            qkv = qkv.new_zeros(total, 3 * dim).index_copy_(0, dest, qkv)
-            valid = torch.zeros(total, dtype=torch.bool, device=feat.device).index_fill_(0, dest, True)
-        qkv = qkv.view(total // p, p, 3, h, dim // h).permute(2, 0, 3, 1, 4)  # (3, patches, heads, P, d)
+        if batch_size == 1:  # contiguous layout (inference): full patches, then the shorter last one
+            full = length // p * p
+            parts = [self._attend(qkv[:full], p)] if full else []
+            if full < length:
+                parts.append(self._attend(qkv[full:], length - full))
+            return self.proj(torch.cat(parts) if len(parts) > 1 else parts[0])
+        dest, total = _patch_layout(batch, batch_size, p)
+        qkv = qkv.new_zeros(total, 3 * dim).index_copy_(0, dest, qkv)
+        valid = torch.zeros(total, dtype=torch.bool, device=feat.device).index_fill_(0, dest, True)
         attn_mask = valid.view(total // p, 1, 1, p)  # every patch holds >= 1 real point
-        out = F.scaled_dot_product_attention(qkv[0], qkv[1], qkv[2], attn_mask=attn_mask)
-        out = out.transpose(1, 2).reshape(total, dim)
-        out = out[:length] if dest is None else out.index_select(0, dest)
-        return self.proj(out)
+        return self.proj(self._attend(qkv, p, attn_mask).index_select(0, dest))
+
+    def _attend(self, qkv: torch.Tensor, patch: int, attn_mask: torch.Tensor | None = None) -> torch.Tensor:
+        """``(R, 3C)`` q/k/v rows, ``R`` a multiple of ``patch`` -> ``(R, C)`` attention within each patch."""
+        rows, dim = qkv.shape[0], qkv.shape[1] // 3
+        qkv = qkv.reshape(rows // patch, patch, 3, self.heads, dim // self.heads).permute(2, 0, 3, 1, 4)
+        out = F.scaled_dot_product_attention(qkv[0], qkv[1], qkv[2], attn_mask=attn_mask)  # (patches, heads, P, d)
+        return out.transpose(1, 2).reshape(rows, dim)
 
 
 class PointBlock(nn.Module):
