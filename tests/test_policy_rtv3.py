@@ -162,6 +162,10 @@ def test_config_windows_presets_and_validation():
         RTV3Config(device="cpu", num_maneuver_classes=0)
     with pytest.raises(ValueError, match="latent_training"):
         RTV3Config(device="cpu", latent_training="gumbel")
+    with pytest.raises(ValueError, match="rotation_conditioning"):
+        RTV3Config(device="cpu", rotation_conditioning="mean")
+    with pytest.raises(ValueError, match="twist_noise_angular"):
+        RTV3Config(device="cpu", twist_noise_angular=-0.1)
     with pytest.raises(ValueError, match="n_action_steps"):
         RTV3Config(device="cpu", n_action_steps=13)
     with pytest.raises(ValueError, match="heads"):
@@ -527,6 +531,32 @@ def test_grasp_subset_augmentation_keeps_the_target():
         subsample_grasps(many, goal, 1, "gaussian")
 
 
+def test_twist_noise_and_sampled_rotation_conditioning_act_in_training_only():
+    """Both regularisers change the training loss (so they are on) and leave inference untouched."""
+    base = make_policy(seed=12, transformer_dropout=0.0, history_noise_translation=0.0, history_noise_rotation=0.0)
+    batch = make_scene_batch(base.config, batch=3, seed=13)
+    variants = {
+        "twist_noise": dict(twist_noise_linear=0.05, twist_noise_angular=0.2),
+        "sampled": dict(rotation_conditioning="sampled"),
+    }
+    base.train()
+    torch.manual_seed(0)
+    reference = float(base.forward(batch)[0].detach())
+    base.eval()
+    ref_chunk = base.predict_action_chunk(observation_only(batch))
+    for name, overrides in variants.items():
+        policy = make_policy(seed=12, transformer_dropout=0.0, history_noise_translation=0.0,
+                             history_noise_rotation=0.0, **overrides)
+        policy.load_state_dict(base.state_dict())
+        policy.train()
+        torch.manual_seed(0)
+        loss = policy.forward(batch)[0]
+        assert torch.isfinite(loss) and abs(float(loss) - reference) > 1e-4, name
+        policy.eval()
+        policy.reset()
+        assert torch.allclose(policy.predict_action_chunk(observation_only(batch)), ref_chunk, atol=1e-6), name
+
+
 # ----------------------------------------------------------------------------- ablations
 
 
@@ -540,6 +570,7 @@ def test_grasp_subset_augmentation_keeps_the_target():
         dict(latent_training="sample", num_maneuver_classes=25),
         dict(teacher_forcing=False),
         dict(teacher_forcing=False, factorized_rotation=False),
+        dict(teacher_forcing=False, rotation_conditioning="sampled", twist_noise_linear=0.05, twist_noise_angular=0.2),
     ],
 )
 def test_ablation_configs_run(overrides: dict):

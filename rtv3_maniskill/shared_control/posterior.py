@@ -51,21 +51,28 @@ def regularize_covariance(cov: torch.Tensor, min_var: float = MIN_VARIANCE, max_
     return (eigvec * eigval[..., None, :]) @ eigvec.transpose(-1, -2)
 
 
+def gaussian_log_prob_and_mahalanobis_sq(
+    x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(log N(x; mean, cov), (x - mean)^T cov^-1 (x - mean))`` from one Cholesky factorisation.
+
+    ``x, mean (..., D)``, ``cov (..., D, D)`` SPD -> two ``(...)`` tensors.
+    """
+    chol = torch.linalg.cholesky(cov)
+    white = torch.linalg.solve_triangular(chol, (x - mean).unsqueeze(-1), upper=False).squeeze(-1)
+    maha = (white * white).sum(-1)
+    half_logdet = torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)
+    return -0.5 * (x.shape[-1] * _LOG_2PI + maha) - half_logdet, maha
+
+
 def gaussian_log_prob(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
     """``log N(x; mean, cov)`` for ``x, mean (..., D)``, ``cov (..., D, D)`` SPD -> ``(...)``."""
-    chol = torch.linalg.cholesky(cov)
-    diff = (x - mean).unsqueeze(-1)
-    white = torch.linalg.solve_triangular(chol, diff, upper=False).squeeze(-1)
-    half_logdet = torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)
-    dim = x.shape[-1]
-    return -0.5 * (dim * _LOG_2PI + (white * white).sum(-1)) - half_logdet
+    return gaussian_log_prob_and_mahalanobis_sq(x, mean, cov)[0]
 
 
 def mahalanobis_sq(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
     """Squared Mahalanobis distance ``(x - mean)^T cov^-1 (x - mean)`` -> ``(...)``."""
-    chol = torch.linalg.cholesky(cov)
-    white = torch.linalg.solve_triangular(chol, (x - mean).unsqueeze(-1), upper=False).squeeze(-1)
-    return (white * white).sum(-1)
+    return gaussian_log_prob_and_mahalanobis_sq(x, mean, cov)[1]
 
 
 def gaussian_entropy(cov: torch.Tensor) -> torch.Tensor:
@@ -236,15 +243,15 @@ def fuse_user_command(
     omega_post, gamma_post = kalman_update(omega_f, gamma_f, w_u, g_u)[:2]
 
     # Class re-weighting (Eq. p(z | h_0, a_0^u)), in log space.
-    trans_pred_cov = regularize_covariance(sigma + s_u)
-    log_lik_v = gaussian_log_prob(v_u, mu, trans_pred_cov)
+    # Sums of two regularised SPD matrices are SPD: no second eigen-decomposition needed.
+    log_lik_v, trans_maha = gaussian_log_prob_and_mahalanobis_sq(v_u, mu, sigma + s_u)
     if reweight_rotation_at == "prior" and prior is not None:
         omega_r, gamma_r = prior.rot_mean, prior.rot_cov
     elif reweight_rotation_at == "prior":
         omega_r, gamma_r = _rotation_at(mixture, mu)
     else:
         omega_r, gamma_r = omega_f, gamma_f
-    log_lik_w = gaussian_log_prob(w_u, omega_r, regularize_covariance(gamma_r + g_u))
+    log_lik_w = gaussian_log_prob(w_u, omega_r, gamma_r + g_u)
     post_lw = prior_lw + log_lik_v + log_lik_w
     post_lw = torch.where(torch.isnan(post_lw), torch.full_like(post_lw, -math.inf), post_lw)
     no_support = ~torch.isfinite(post_lw).any(-1, keepdim=True)
@@ -258,7 +265,7 @@ def fuse_user_command(
         rot_mean=omega_post,
         rot_cov=gamma_post,
         prior_log_weights=prior_lw,
-        trans_mahalanobis_sq=mahalanobis_sq(v_u, mu, trans_pred_cov),
+        trans_mahalanobis_sq=trans_maha,
     )
 
 

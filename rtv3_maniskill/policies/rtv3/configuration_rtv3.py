@@ -24,6 +24,7 @@ GRASP_SUBSET_SIZES = ("uniform", "log_uniform")
 """Distributions of the grasp-subset size (``grasp_subset_sizes``; see ``batch.subsample_grasps``)."""
 
 LATENT_TRAINING_MODES = ("enumerate", "sample")
+ROTATION_CONDITIONING_MODES = ("true", "sampled")
 ENV_STATE = "observation.environment_state"
 """LeRobot's packed environment-state key (``features.pack_context`` layout)."""
 
@@ -91,6 +92,14 @@ class RTV3Config(PreTrainedConfig):
         mutual_information_weight: weight of I_p subtracted from the loss (Trajectron++: 1).
         history_noise_translation / _rotation: training-time uniform se(3) noise (m, rad) applied to the
             past poses (not the current one) (NOTES augmentation). 0 disables.
+        twist_noise_linear / _angular: training-time uniform noise (m/s, rad/s) on the history's body
+            twists, the current one (a_{-1}, fed to the decoder) included; the targets stay clean, so
+            the prior learns to return to the expert's motion from a perturbed one instead of copying
+            the last twist (closed loop, its own errors come back as the current twist). 0 disables.
+        rotation_conditioning: what the rotation head p(w | h, z, v) is conditioned on in training:
+            "true" = the demonstrated v; "sampled" = a translation drawn from the predicted
+            p(v | h, z) (the paper's two-stage sampling, a regulariser: at inference the head is
+            evaluated at predicted or fused translations, never at the true one).
 
     Optimiser: Adam, lr 1e-3 decaying exponentially (0.9999 per step) to 1e-4, grad clip 1.0.
     """
@@ -187,6 +196,9 @@ class RTV3Config(PreTrainedConfig):
     mutual_information_weight: float = 1.0
     history_noise_translation: float = 0.007
     history_noise_rotation: float = 0.0035
+    twist_noise_linear: float = 0.0
+    twist_noise_angular: float = 0.0
+    rotation_conditioning: str = "true"
 
     # Optimiser preset.
     optimizer_lr: float = 1e-3
@@ -262,10 +274,15 @@ class RTV3Config(PreTrainedConfig):
         if not self.log_sigma_min < self.log_sigma_max:
             raise ValueError(f"log_sigma_min ({self.log_sigma_min}) must be < log_sigma_max ({self.log_sigma_max})")
         for name in ("kl_weight", "kl_weight_start", "kl_min", "mutual_information_weight",
-                     "history_noise_translation", "history_noise_rotation", "transformer_dropout",
+                     "history_noise_translation", "history_noise_rotation", "twist_noise_linear",
+                     "twist_noise_angular", "transformer_dropout",
                      "optimizer_weight_decay"):
             if getattr(self, name) < 0:
                 raise ValueError(f"RTV3Config.{name} must be >= 0, got {getattr(self, name)}")
+        if self.rotation_conditioning not in ROTATION_CONDITIONING_MODES:
+            raise ValueError(
+                f"rotation_conditioning must be one of {ROTATION_CONDITIONING_MODES}, got {self.rotation_conditioning!r}"
+            )
         if not 0 < self.z_logit_clip_start <= self.z_logit_clip_final:
             raise ValueError("need 0 < z_logit_clip_start <= z_logit_clip_final")
         if not 0 < self.optimizer_min_lr <= self.optimizer_lr:

@@ -72,16 +72,20 @@ class TrajectoryDecoder(nn.Module):
         state = self.initial_state(torch.cat([z, h0], -1))[None]
         return DecoderStart(state, torch.cat([z, self.context_proj(h0)], -1), z)
 
-    def _state_log_likelihood(self, h: torch.Tensor, z: torch.Tensor, actions: torch.Tensor, clamp: float) -> torch.Tensor:
-        """``log p(a | h, z)`` for GRU states ``h (..., hidden)`` and true actions ``(..., 6)``; the rotation
-        factor is conditioned on the true v; each 3-D factor clamped at ``clamp``."""
+    def _state_log_likelihood(self, h: torch.Tensor, z: torch.Tensor, actions: torch.Tensor, clamp: float,
+                              rotation_conditioning: str = "true") -> torch.Tensor:
+        """``log p(a | h, z)`` for GRU states ``h (..., hidden)`` and true actions ``(..., 6)``; each 3-D
+        factor clamped at ``clamp``. The rotation factor ``p(w | h, z, v)`` is evaluated at the true v
+        (``rotation_conditioning="true"``) or at a (detached) draw ``v ~ p(v | h, z)`` (``"sampled"``)."""
         if self.factorized_rotation:
             v, w = actions[..., :3], actions[..., 3:]
-            return self.translation(h, z).log_prob(v).clamp(max=clamp) + self.rotation(h, z, v).log_prob(w).clamp(max=clamp)
+            trans = self.translation(h, z)
+            v_cond = trans.sample().detach() if rotation_conditioning == "sampled" else v
+            return trans.log_prob(v).clamp(max=clamp) + self.rotation(h, z, v_cond).log_prob(w).clamp(max=clamp)
         return self.joint(h, z).log_prob(actions).clamp(max=2 * clamp)
 
     def log_likelihood(self, start: DecoderStart, prev_action: torch.Tensor, actions: torch.Tensor,
-                       clamp: float, teacher_forcing: bool = True) -> torch.Tensor:
+                       clamp: float, teacher_forcing: bool = True, rotation_conditioning: str = "true") -> torch.Tensor:
         """Per-step ``log p(a_t | h_t, z)``, each 3-D factor clamped at ``clamp``.
 
         Teacher-forced, the GRU reads the true a_{t-1}; otherwise (``teacher_forcing=False``) it reads
@@ -90,21 +94,22 @@ class TrajectoryDecoder(nn.Module):
 
         Args:
             prev_action: ``(R, 6)`` a_{-1}. actions: ``(R, H, 6)`` true a_0..a_{H-1} (network units).
+            rotation_conditioning: ``"true"`` or ``"sampled"`` (see :meth:`_state_log_likelihood`).
         Returns:
-            ``(R, H)`` log-likelihoods (rotation conditioned on the true v_t).
+            ``(R, H)`` log-likelihoods.
         """
         horizon = actions.shape[1]
         if not teacher_forcing:
             state, action, out = start.state, prev_action, []
             for t in range(horizon):
                 state = self.step(start, action, state)
-                out.append(self._state_log_likelihood(state[0], start.z, actions[:, t], clamp))
+                out.append(self._state_log_likelihood(state[0], start.z, actions[:, t], clamp, rotation_conditioning))
                 action = self.mode_action(state[0], start.z).detach()
             return torch.stack(out, 1)
         inputs_prev = torch.cat([prev_action[:, None], actions[:, :-1]], 1)
         static = start.static_input[:, None].expand(-1, horizon, -1)
         h, _ = self.gru(torch.cat([static, inputs_prev], -1), start.state)  # (R, H, hidden)
-        return self._state_log_likelihood(h, start.z[:, None].expand(-1, horizon, -1), actions, clamp)
+        return self._state_log_likelihood(h, start.z[:, None].expand(-1, horizon, -1), actions, clamp, rotation_conditioning)
 
     def step(self, start: DecoderStart, prev_action: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """One GRU step: ``(R, 6)`` a_{t-1}, ``(1, R, hidden)`` h_{t-1} -> ``(1, R, hidden)`` h_t."""

@@ -33,6 +33,15 @@ def perturb_poses(poses: torch.Tensor, translation: float, rotation: float) -> t
     return poses @ se3.se3_exp(noise)
 
 
+def perturb_twists(twists: torch.Tensor, linear: float, angular: float) -> torch.Tensor:
+    """Add ``U(-[l]*3, [l]*3) x U(-[a]*3, [a]*3)`` noise to body twists ``(..., 6)`` [v m/s, w rad/s].
+
+    Training augmentation of the history's twists (``RTV3Config.twist_noise_*``).
+    """
+    bound = twists.new_tensor([linear] * 3 + [angular] * 3)
+    return twists + (torch.rand_like(twists) * 2 - 1) * bound
+
+
 def history_dynamics(
     relative: torch.Tensor, body_twists: torch.Tensor, log_relative: torch.Tensor | None = None
 ) -> torch.Tensor:

@@ -49,6 +49,11 @@ class AxisGaussian:
         maha = (local * torch.exp(-self.log_sigma)).pow(2).sum(-1)
         return -0.5 * maha - self.log_sigma.sum(-1) - 1.5 * _LOG_2PI
 
+    def sample(self) -> torch.Tensor:
+        """One draw ``mu + R diag(sigma) eps``, ``eps ~ N(0, I)``: ``(..., 3)`` (reparameterised)."""
+        eps = torch.randn_like(self.mean) * torch.exp(self.log_sigma)
+        return self.mean + (self.axes @ eps[..., None])[..., 0]
+
     def scaled(self, factor: float) -> "AxisGaussian":
         """The distribution of ``factor * y`` (used to undo the translation scale)."""
         return AxisGaussian(self.mean * factor, self.log_sigma + math.log(factor), self.axes)

@@ -120,7 +120,10 @@ class RTV3Model(nn.Module):
             relative = torch.cat([relative, grasp_relative], 1)
         logs = se3.se3_log(relative)  # one batched log map for history and grasps
         steps = poses.shape[1]
-        x = egocentric.history_dynamics(relative[:, :steps], states[..., ft.EE_TWIST], logs[:, :steps])  # x_{-T+1:0}
+        twists = states[..., ft.EE_TWIST]
+        if augment and (c.twist_noise_linear > 0 or c.twist_noise_angular > 0):
+            twists = egocentric.perturb_twists(twists, c.twist_noise_linear, c.twist_noise_angular)
+        x = egocentric.history_dynamics(relative[:, :steps], twists, logs[:, :steps])  # x_{-T+1:0}
         _, (h_last, _) = self.history_encoder(self._dynamics_in(x))
         h0_d = h_last[-1]  # h0_d = LSTM(x_{-T+1:0})
         parts = [h0_d]
@@ -178,14 +181,16 @@ class RTV3Model(nn.Module):
         weight = valid.to(target.dtype)
         if c.latent_training == "enumerate":
             start, prev = self._expand_classes(enc)
-            step_ll = self.decoder.log_likelihood(start, prev, target.repeat_interleave(k, 0), c.log_prob_clamp, c.teacher_forcing)
+            step_ll = self.decoder.log_likelihood(start, prev, target.repeat_interleave(k, 0), c.log_prob_clamp,
+                                                  c.teacher_forcing, c.rotation_conditioning)
             seq_ll = (step_ll.view(batch, k, -1) * weight[:, None]).sum(-1)  # (B, K)
             expected_ll = (log_q.exp() * seq_ll).sum(-1)
         else:  # one z ~ q per sample (Trajectron++); q learns through the KL term only
             z_index = torch.distributions.Categorical(logits=log_q.detach()).sample()
             z = torch.nn.functional.one_hot(z_index, k).to(enc.h0.dtype)
             start = self.decoder.start(enc.h0, z)
-            step_ll = self.decoder.log_likelihood(start, enc.prev_action, target, c.log_prob_clamp, c.teacher_forcing)
+            step_ll = self.decoder.log_likelihood(start, enc.prev_action, target, c.log_prob_clamp,
+                                                  c.teacher_forcing, c.rotation_conditioning)
             expected_ll = (step_ll * weight).sum(-1)
         nll = -expected_ll.mean()
         kl = kl_categorical(log_q, log_p).mean()
