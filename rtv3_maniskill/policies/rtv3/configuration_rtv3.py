@@ -24,7 +24,7 @@ GRASP_SUBSET_SIZES = ("uniform", "log_uniform")
 """Distributions of the grasp-subset size (``grasp_subset_sizes``; see ``batch.subsample_grasps``)."""
 
 LATENT_TRAINING_MODES = ("enumerate", "sample")
-ROTATION_CONDITIONING_MODES = ("true", "sampled")
+ROTATION_CONDITIONING_MODES = ("demonstrated", "sampled")
 ENV_STATE = "observation.environment_state"
 """LeRobot's packed environment-state key (``features.pack_context`` layout)."""
 
@@ -97,7 +97,7 @@ class RTV3Config(PreTrainedConfig):
             the prior learns to return to the expert's motion from a perturbed one instead of copying
             the last twist (closed loop, its own errors come back as the current twist). 0 disables.
         rotation_conditioning: what the rotation head p(w | h, z, v) is conditioned on in training:
-            "true" = the demonstrated v; "sampled" = a translation drawn from the predicted
+            "demonstrated" = the demonstrated v; "sampled" = a translation drawn from the predicted
             p(v | h, z) (the paper's two-stage sampling, a regulariser: at inference the head is
             evaluated at predicted or fused translations, never at the true one).
 
@@ -198,7 +198,7 @@ class RTV3Config(PreTrainedConfig):
     history_noise_rotation: float = 0.0035
     twist_noise_linear: float = 0.0
     twist_noise_angular: float = 0.0
-    rotation_conditioning: str = "true"
+    rotation_conditioning: str = "demonstrated"
 
     # Optimiser preset.
     optimizer_lr: float = 1e-3

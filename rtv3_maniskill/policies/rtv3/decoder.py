@@ -73,10 +73,10 @@ class TrajectoryDecoder(nn.Module):
         return DecoderStart(state, torch.cat([z, self.context_proj(h0)], -1), z)
 
     def _state_log_likelihood(self, h: torch.Tensor, z: torch.Tensor, actions: torch.Tensor, clamp: float,
-                              rotation_conditioning: str = "true") -> torch.Tensor:
+                              rotation_conditioning: str = "demonstrated") -> torch.Tensor:
         """``log p(a | h, z)`` for GRU states ``h (..., hidden)`` and true actions ``(..., 6)``; each 3-D
         factor clamped at ``clamp``. The rotation factor ``p(w | h, z, v)`` is evaluated at the true v
-        (``rotation_conditioning="true"``) or at a (detached) draw ``v ~ p(v | h, z)`` (``"sampled"``)."""
+        (``rotation_conditioning="demonstrated"``) or at a (detached) draw ``v ~ p(v | h, z)`` (``"sampled"``)."""
         if self.factorized_rotation:
             v, w = actions[..., :3], actions[..., 3:]
             trans = self.translation(h, z)
@@ -85,7 +85,8 @@ class TrajectoryDecoder(nn.Module):
         return self.joint(h, z).log_prob(actions).clamp(max=2 * clamp)
 
     def log_likelihood(self, start: DecoderStart, prev_action: torch.Tensor, actions: torch.Tensor,
-                       clamp: float, teacher_forcing: bool = True, rotation_conditioning: str = "true") -> torch.Tensor:
+                       clamp: float, teacher_forcing: bool = True,
+                       rotation_conditioning: str = "demonstrated") -> torch.Tensor:
         """Per-step ``log p(a_t | h_t, z)``, each 3-D factor clamped at ``clamp``.
 
         Teacher-forced, the GRU reads the true a_{t-1}; otherwise (``teacher_forcing=False``) it reads
@@ -94,7 +95,7 @@ class TrajectoryDecoder(nn.Module):
 
         Args:
             prev_action: ``(R, 6)`` a_{-1}. actions: ``(R, H, 6)`` true a_0..a_{H-1} (network units).
-            rotation_conditioning: ``"true"`` or ``"sampled"`` (see :meth:`_state_log_likelihood`).
+            rotation_conditioning: ``"demonstrated"`` or ``"sampled"`` (see :meth:`_state_log_likelihood`).
         Returns:
             ``(R, H)`` log-likelihoods.
         """
