@@ -550,7 +550,7 @@ def test_twist_noise_and_sampled_rotation_conditioning_act_in_training_only():
         policy.load_state_dict(base.state_dict())
         policy.train()
         torch.manual_seed(0)
-        loss = policy.forward(batch)[0]
+        loss = policy.forward(batch)[0].detach()
         assert torch.isfinite(loss) and abs(float(loss) - reference) > 1e-4, name
         policy.eval()
         policy.reset()
