@@ -23,14 +23,20 @@ def state_poses(states: torch.Tensor) -> torch.Tensor:
     return se3.pose_to_matrix(states[..., ft.EE_POS], states[..., ft.EE_QUAT])
 
 
+def uniform_se3_noise(like: torch.Tensor, first: float, last: float) -> torch.Tensor:
+    """``(..., 6)`` samples of ``U(-[first]*3, [first]*3) x U(-[last]*3, [last]*3)`` with ``like``'s
+    leading shape, dtype and device (``like`` is ``(..., 6)``)."""
+    bound = like.new_tensor([first] * 3 + [last] * 3)
+    return (torch.rand_like(like) * 2 - 1) * bound
+
+
 def perturb_poses(poses: torch.Tensor, translation: float, rotation: float) -> torch.Tensor:
     """Right-multiply ``(..., 4, 4)`` poses by ``Exp(u)``, ``u ~ U(-[t]*3, [t]*3) x U(-[r]*3, [r]*3)``.
 
     Training augmentation (NOTES: uniform se(3) noise on the inputs).
     """
-    bound = poses.new_tensor([translation] * 3 + [rotation] * 3)
-    noise = (torch.rand(*poses.shape[:-2], 6, dtype=poses.dtype, device=poses.device) * 2 - 1) * bound
-    return poses @ se3.se3_exp(noise)
+    like = poses.new_empty(*poses.shape[:-2], 6)
+    return poses @ se3.se3_exp(uniform_se3_noise(like, translation, rotation))
 
 
 def perturb_twists(twists: torch.Tensor, linear: float, angular: float) -> torch.Tensor:
@@ -38,8 +44,7 @@ def perturb_twists(twists: torch.Tensor, linear: float, angular: float) -> torch
 
     Training augmentation of the history's twists (``RTV3Config.twist_noise_*``).
     """
-    bound = twists.new_tensor([linear] * 3 + [angular] * 3)
-    return twists + (torch.rand_like(twists) * 2 - 1) * bound
+    return twists + uniform_se3_noise(twists, linear, angular)
 
 
 def history_dynamics(
