@@ -246,15 +246,87 @@ def test_entropy_bounds_bracket_monte_carlo_entropy():
 
 def test_ood_threshold_is_chi2_quantile_on_squared_mahalanobis():
     assert posterior.ood_threshold(0.85) == pytest.approx(chi2.ppf(0.85, 3))
+    assert posterior.ood_threshold(0.85, 6) == pytest.approx(chi2.ppf(0.85, 6))
     mixture = make_two_class_mixture()
     s_u, g_u = user_covs()
     near = posterior.fuse_user_command(mixture, torch.tensor([[0.3, 0, 0, 0, 0, 0.6]]), s_u, g_u)
     far = posterior.fuse_user_command(mixture, torch.tensor([[0.0, 0.0, 0.6, 0, 0, 0]]), s_u, g_u)
-    thr = posterior.ood_threshold(0.85)
-    assert not posterior.is_out_of_distribution(near, thr)[0]
-    assert posterior.is_out_of_distribution(far, thr)[0]
-    # (0.3^2 + 0.6^2) / (0.002 + 0.03) to the nearest class
+    for covariance in posterior.OOD_COVARIANCES:
+        for dofs in posterior.OOD_DOFS:
+            assert not posterior.is_out_of_distribution(near, 0.85, covariance, dofs)[0]
+            assert posterior.is_out_of_distribution(far, 0.85, covariance, dofs)[0]
+    # (0.3^2 + 0.6^2) to the nearest class, under Sigma_k + S_u = 0.032 I and Sigma_k = 0.002 I
     assert far.trans_mahalanobis_sq.min() == pytest.approx((0.09 + 0.36) / 0.032, rel=1e-4)
+    assert far.trans_class_mahalanobis_sq.min() == pytest.approx((0.09 + 0.36) / 0.002, rel=1e-4)
+
+
+def test_ood_gate_covariance_class_rejects_what_only_the_user_noise_would_explain():
+    """0.15 m/s off class 1's mean: 3.4 sigma of the class (OOD), 0.8 sigma of class + user noise."""
+    mixture = make_two_class_mixture()
+    s_u, g_u = user_covs()
+    fused = posterior.fuse_user_command(mixture, torch.tensor([[0.3, 0.15, 0, 0, 0, 0.6]]), s_u, g_u)
+    assert posterior.is_out_of_distribution(fused, 0.85, "class", "translation")[0]
+    assert not posterior.is_out_of_distribution(fused, 0.85, "predictive", "translation")[0]
+    with pytest.raises(ValueError, match="covariance must be one of"):
+        posterior.is_out_of_distribution(fused, 0.85, "joint", "translation")
+    with pytest.raises(ValueError, match="dofs must be one of"):
+        posterior.is_out_of_distribution(fused, 0.85, "class", "rotation")
+
+
+def test_ood_gate_tests_the_observed_blocks_of_the_command():
+    mixture = make_two_class_mixture()  # class 1: v = (0.3, 0, 0), omega_z = 2 v_x = 0.6, Gamma = 0.01 I
+    s_u, g_u = user_covs()
+
+    def ood(command, dofs, missing_zeros=True):
+        command = torch.tensor([command])
+        observed = command.abs() > 0 if missing_zeros else None
+        fused = posterior.fuse_user_command(mixture, command, s_u, g_u, observed=observed)
+        return bool(posterior.is_out_of_distribution(fused, 0.85, "class", dofs)[0])
+
+    # translation only, matching class 1: its zero rotation is missing, not a command to hold still
+    translation_only = [0.3, 0, 0, 0, 0, 0]
+    assert not ood(translation_only, "twist") and not ood(translation_only, "translation")
+    assert ood(translation_only, "twist", missing_zeros=False)  # 0.6^2 / 0.01 = 36 > chi2(0.85, 6)
+    # rotation only, opposite to every class's rotation: the twist gate sees it
+    rotation_only = [0, 0, 0, 0, 0, -1.0]
+    assert ood(rotation_only, "twist")
+    assert not ood(rotation_only, "translation")  # no translation observed: nothing to test
+    assert not ood([0.3, 0, 0, 0, 0, -1.0], "translation")
+    # one axis tested against chi2(0.85, 1) = 2.07: 0.15 m/s off class 1's v_x (3.4 sigma) is OOD, 0.03 is not
+    assert ood([0.45, 0, 0, 0, 0, 0], "twist") and not ood([0.33, 0, 0, 0, 0, 0], "twist")
+    # a full twist matching class 1 passes every gate
+    for dofs in posterior.OOD_DOFS:
+        assert not ood([0.3, 0, 0, 0, 0, 0.6], dofs)
+
+
+def test_missing_axes_are_left_to_the_prior_and_equal_a_huge_user_variance():
+    mixture = make_two_class_mixture(weights=(0.5, 0.5))
+    s_u, g_u = user_covs()
+    command = torch.tensor([[0.25, 0.0, 0.0, 0.0, 0.0, 0.0]])  # only v_x given
+    fused = posterior.fuse_user_command(mixture, command, s_u, g_u, observed=command.abs() > 0)
+    # unobserved axes: the classes' own values (v_y = v_z = 0, omega_z = 2 v_x at the fused v_x)
+    torch.testing.assert_close(fused.trans_mean[0, :, 1:], torch.zeros(2, 2, dtype=DT), atol=1e-6, rtol=0)
+    torch.testing.assert_close(fused.rot_mean[0, :, 2], 2 * fused.trans_mean[0, :, 0], atol=1e-5, rtol=0)
+    # the observed axis is fused as a 1-D Kalman update: 0.3 + 0.002 / 0.032 * (0.25 - 0.3)
+    assert float(fused.trans_mean[0, 1, 0]) == pytest.approx(0.3 - 0.05 * 0.002 / 0.032, rel=1e-6)
+    # class weights: only v_x's likelihood counts, which favours class 1 (+x)
+    assert fused.weights[0, 1] > 0.99
+    # same as a user covariance with a huge variance on the missing axes
+    big = torch.diag(torch.tensor([0.03, 1e6, 1e6], dtype=DT))[None]
+    reference = posterior.fuse_user_command(mixture, command, big, (1e6 * torch.eye(3, dtype=DT))[None])
+    torch.testing.assert_close(fused.trans_mean, reference.trans_mean)
+    torch.testing.assert_close(fused.log_weights, reference.log_weights)
+    with pytest.raises(ValueError, match="observed must be"):
+        posterior.fuse_user_command(mixture, command, s_u, g_u, observed=torch.ones(1, 3, dtype=torch.bool))
+
+
+def test_shared_control_config_rejects_unknown_ood_gate_options():
+    with pytest.raises(ValueError, match="ood_covariance must be one of"):
+        SharedControlConfig(ood_covariance="user")
+    with pytest.raises(ValueError, match="ood_dofs must be one of"):
+        SharedControlConfig(ood_dofs="all")
+    with pytest.raises(ValueError, match="uncommanded_axes must be one of"):
+        SharedControlConfig(uncommanded_axes="ignore")
 
 
 def test_user_covariance_follows_command_spread_but_not_below_floor():
@@ -354,13 +426,14 @@ def test_no_input_near_the_object_surface_hands_control_to_the_user():
 def test_user_command_gives_shared_control_that_blends_towards_the_matching_class():
     prior = HandBuiltPrior(weights=(0.7, 0.3))
     ctrl = SharedController(prior)
-    user = torch.tensor([0.2, 0.0, 0.0, 0.0, 0.0, 0.0])
+    user = torch.tensor([0.27, 0.0, 0.0, 0.0, 0.0, 0.0])
     action = ctrl.step(make_observation(), user)
     d = ctrl.last_diagnostics
     assert d.mode == "shared" and not d.ood[0]
     assert d.class_weights[0, 1] > 0.9 > d.prior_class_weights[0, 1]
-    # translation pulled from the user's 0.2 towards class 1's 0.3; rotation follows class 1 (omega_z = 2 v_x)
-    assert 0.2 < action[0] < 0.3
+    # translation pulled from the user's 0.27 towards class 1's 0.3; the rotation the user does not
+    # command follows class 1 (omega_z = 2 v_x)
+    assert 0.27 < action[0] < 0.3
     assert action[5] > 0.2
     for name in ("trans_entropy_lower", "trans_entropy_upper", "rot_entropy_lower", "rot_entropy_upper"):
         assert torch.isfinite(getattr(d, name)).all()

@@ -198,6 +198,29 @@ def test_benchmark_refuses_to_resume_with_other_weights_at_the_same_path(tmp_pat
         _check_config(config.output, config.fingerprint(ckpt))
 
 
+def test_benchmark_refuses_to_resume_with_other_shared_control_settings(tmp_path):
+    from rtv3_maniskill.shared_control.benchmark import _check_config
+
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    (ckpt / "model.safetensors").write_bytes(b"weights")
+    default = BenchmarkConfig(output=tmp_path / "out", scenes=1, methods=["rtv3"])
+    default.output.mkdir()
+    _check_config(default.output, default.fingerprint(ckpt))
+    assert default.fingerprint(ckpt)["shared_control"]["ood_covariance"] == "class"
+    notes = BenchmarkConfig(output=default.output, scenes=1, methods=["rtv3"],
+                            shared_control={"ood_covariance": "predictive", "uncommanded_axes": "zero"})
+    assert notes.shared_control_config(0.3, 1.2).ood_covariance == "predictive"
+    with pytest.raises(BenchmarkError, match="shared_control"):
+        _check_config(notes.output, notes.fingerprint(ckpt))
+    with pytest.raises(BenchmarkError, match="bad shared_control settings"):
+        BenchmarkConfig(output=tmp_path, shared_control={"ood_dofs": "rotation"})
+    with pytest.raises(BenchmarkError, match="bad shared_control settings"):
+        BenchmarkConfig(output=tmp_path, shared_control={"no_such_field": 1})
+    with pytest.raises(BenchmarkError, match="speed limits come from the env"):
+        BenchmarkConfig(output=tmp_path, shared_control={"max_linear_speed": 1.0})
+
+
 def test_bad_inputs_give_clear_errors(env, policy, tmp_path):
     with pytest.raises(ValueError, match="unknown simulated user"):
         make_user("telepath")

@@ -38,6 +38,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
     parser.add_argument("--ho-variant", default="rtv3_authors", choices=["rtv3_authors", "javdani2018"],
                         help="HO constants: the RT-V3 authors' translation-only baseline or the original ones")
+    parser.add_argument("--ood-covariance", choices=["class", "predictive"], default=None,
+                        help="RT-V3 OOD gate distance under the class covariance (default) or class + user noise")
+    parser.add_argument("--ood-dofs", choices=["twist", "translation"], default=None,
+                        help="RT-V3 OOD gate on the whole twist (default) or on the translation only (NOTES.md)")
+    parser.add_argument("--uncommanded-axes", choices=["missing", "zero"], default=None,
+                        help="zero axes of a user command: missing (default; the prior fills them in) or "
+                             "observations of zero velocity (the paper's reading)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -51,7 +58,10 @@ def run(args: argparse.Namespace) -> int:
             output=args.output, policy_path=args.policy_path, scenes=args.scenes, users=users, methods=methods,
             seed=args.seed, max_grasps_per_scene=args.max_grasps_per_scene, max_steps=args.max_steps,
             obs_mode=args.obs_mode, rendered_context=not args.mesh_context, scene_type=args.scene_type,
-            ho_variant=args.ho_variant,
+            ho_variant=args.ho_variant, shared_control={
+                key: value for key in ("ood_covariance", "ood_dofs", "uncommanded_axes")
+                if (value := getattr(args, key, None)) is not None
+            },
         )
         summary = run_benchmark(config, progress=not args.no_progress)
     except (BenchmarkError, FileNotFoundError) as err:

@@ -65,6 +65,9 @@ class BenchmarkConfig:
     rendered_context: bool = False
     scene_type: str = "mixed"
     ho_variant: str = "rtv3_authors"
+    shared_control: dict[str, Any] = field(default_factory=dict)
+    """Overrides of :class:`SharedControlConfig` fields for RT-V3 (e.g. ``{"ood_dofs": "translation"}``);
+    the speed limits always come from the env's controller."""
     extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -96,6 +99,31 @@ class BenchmarkConfig:
             raise BenchmarkError(f"obs_mode must be 'state_dict' or 'pointcloud', got {self.obs_mode!r}")
         if self.ho_variant not in VARIANTS:
             raise BenchmarkError(f"unknown HO variant {self.ho_variant!r}; known: {', '.join(VARIANTS)}")
+        self.shared_control = dict(self.shared_control)
+        for key in ("max_linear_speed", "max_angular_speed"):
+            if key in self.shared_control:
+                raise BenchmarkError(f"shared_control may not set {key}: the speed limits come from the env")
+        try:
+            self.shared_control_config(0.3, 1.2)
+        except (TypeError, ValueError) as err:
+            raise BenchmarkError(f"bad shared_control settings {self.shared_control}: {err}") from None
+
+    def shared_control_config(self, max_linear_speed: float, max_angular_speed: float):
+        """The RT-V3 controller's settings: the defaults, these overrides and the env's speed limits."""
+        from rtv3_maniskill.shared_control.shared_controller import SharedControlConfig
+
+        return SharedControlConfig(max_linear_speed=max_linear_speed, max_angular_speed=max_angular_speed,
+                                   **self.shared_control)
+
+    def _shared_control_settings(self) -> dict[str, Any]:
+        """The RT-V3 controller's settings (OOD gate, user covariance, ...) minus the speed limits
+        (those come from the env): results made with other settings are not mixed."""
+        import dataclasses
+
+        settings = dataclasses.asdict(self.shared_control_config(0.3, 1.2))
+        for key in ("max_linear_speed", "max_angular_speed"):
+            settings.pop(key)
+        return settings
 
     def scene_seeds(self) -> list[int]:
         return [self.seed * SCENE_SEED_STRIDE + i for i in range(self.scenes)]
@@ -108,7 +136,8 @@ class BenchmarkConfig:
             seed=self.seed, max_steps=self.max_steps, obs_mode=self.obs_mode, rendered_context=self.rendered_context,
             scene_type=self.scene_type, ho_variant=self.ho_variant, max_grasps_per_scene=self.max_grasps_per_scene,
             policy_path=str(policy_path.resolve()) if policy_path is not None else None,
-            policy_weights_sha256=weights_digest(policy_path) if policy_path is not None else None, **self.extra,
+            policy_weights_sha256=weights_digest(policy_path) if policy_path is not None else None,
+            shared_control=self._shared_control_settings() if "rtv3" in self.methods else None, **self.extra,
         )
 
 
@@ -317,6 +346,7 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
 
     from rtv3_maniskill.shared_control.env_wrapper import (
         DEFAULT_POLICY_PATH,
+        controller_speed_limits,
         SharedControlEnv,
         load_rtv3_policy,
         make_method,
@@ -341,7 +371,10 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     if policy is not None:
         env_kwargs.update(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps))
     env = SharedControlEnv(rendered_context=config.rendered_context, **env_kwargs)
-    methods = {m: make_method(m, policy=policy, ho_variant=config.ho_variant) for m in config.methods}
+    env.reset(seed=config.scene_seeds()[0])
+    shared_config = config.shared_control_config(*controller_speed_limits(env.base))
+    methods = {m: make_method(m, policy=policy, ho_variant=config.ho_variant, config=shared_config)
+               for m in config.methods}
     per_grasp = len(config.users) * len(config.methods)
     bar = tqdm(total=0, unit="trial", disable=not progress, dynamic_ncols=True)
     wins: dict[str, list[int]] = {m: [] for m in config.methods}

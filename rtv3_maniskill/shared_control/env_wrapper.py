@@ -75,7 +75,7 @@ def _tcp_pose(env: Any) -> torch.Tensor:
     return env.tcp_pose_matrix[0].detach().cpu().double()
 
 
-def _speed_limits(env: Any) -> tuple[float, float]:
+def controller_speed_limits(env: Any) -> tuple[float, float]:
     """The ``pd_ee_twist`` controller's norm limits (m/s, rad/s): twists beyond them are scaled there."""
     config = env.agent.controller.controllers["arm"].config
     return float(config.max_linear_speed), float(config.max_angular_speed)
@@ -93,7 +93,7 @@ class DirectAssistance:
 
     def reset(self, env: Any) -> None:
         if self.teleop is None:
-            lin, ang = _speed_limits(env)
+            lin, ang = controller_speed_limits(env)
             self.teleop = DirectTeleoperation(self._limits[0] or lin, self._limits[1] or ang)
         self.teleop.reset()
         self.last_diagnostics = {}
@@ -144,7 +144,7 @@ class HOAssistance:
 
     def reset(self, env: Any) -> None:
         goals, groups = pregrasp_goals(env)
-        lin, ang = _speed_limits(env)
+        lin, ang = controller_speed_limits(env)
         self.ho = HindsightOptimization(
             goals, self.variant, dt=1.0 / env.control_freq, target_groups=groups.tolist(),
             max_linear_speed=self._limits[0] or lin, max_angular_speed=self._limits[1] or ang,
@@ -201,7 +201,7 @@ class RTV3Assistance:
         if self.controller is None:
             config = self._config
             if config is None:
-                lin, ang = _speed_limits(env)
+                lin, ang = controller_speed_limits(env)
                 config = SharedControlConfig(max_linear_speed=lin, max_angular_speed=ang)
             self.controller = SharedController(self._prior, config)
         self.controller.reset()

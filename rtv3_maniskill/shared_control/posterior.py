@@ -25,6 +25,7 @@ produce NaN from a near-singular network output.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -119,6 +120,13 @@ class FactorizedTwistMixture:
         prior_log_weights: ``(B, K)`` the prior's class log-probabilities (before fusion).
         trans_mahalanobis_sq: ``(B, K)`` squared Mahalanobis distance of the user translation
             to each class under ``Sigma_k + S_u`` (``None`` for a prior-only mixture).
+        rot_mahalanobis_sq: ``(B, K)`` squared Mahalanobis distance of the user rotation to each
+            class's rotation Gaussian of the class likelihood, under ``Gamma_k + G_u``.
+        trans_class_mahalanobis_sq, rot_class_mahalanobis_sq: the same two under the class
+            covariances ``Sigma_k`` / ``Gamma_k`` alone. All four ``None`` for a prior-only mixture.
+        user_twist: ``(B, 6)`` the fused user command (``None`` for a prior-only mixture).
+        observed: ``(B, 6)`` bool, the command's axes that were fused (the others were treated
+            as missing; ``None`` for a prior-only mixture).
     """
 
     log_weights: torch.Tensor
@@ -128,6 +136,11 @@ class FactorizedTwistMixture:
     rot_cov: torch.Tensor
     prior_log_weights: torch.Tensor
     trans_mahalanobis_sq: torch.Tensor | None = None
+    rot_mahalanobis_sq: torch.Tensor | None = None
+    trans_class_mahalanobis_sq: torch.Tensor | None = None
+    rot_class_mahalanobis_sq: torch.Tensor | None = None
+    user_twist: torch.Tensor | None = None
+    observed: torch.Tensor | None = None
 
     @property
     def weights(self) -> torch.Tensor:
@@ -196,6 +209,7 @@ def fuse_user_command(
     user_rot_cov: torch.Tensor,
     reweight_rotation_at: str = "prior",
     prior: FactorizedTwistMixture | None = None,
+    observed: torch.Tensor | None = None,
 ) -> FactorizedTwistMixture:
     """Posterior step-0 mixture given the user command (paper, Sec. Posterior Decision Making).
 
@@ -208,6 +222,11 @@ def fuse_user_command(
             ``omega_k(mu_k)``) or ``"fused"`` (NOTES.md: at ``omega_k(mu_k')``).
         prior: optional :func:`prior_twist_mixture` of the same ``mixture``; its class weights,
             translation Gaussians and rotation Gaussians are reused instead of recomputed.
+        observed: optional ``(B, 6)`` bool, the axes of the command that carry an observation
+            (default: all). An unobserved axis is a missing measurement, not a zero one: the
+            user covariance gets an infinite variance (``MAX_VARIANCE``) along it and no
+            correlation with the other axes, so the Kalman gain, the class likelihood and the
+            OOD distances ignore it (exactly, up to ``1 / MAX_VARIANCE``).
     Returns:
         The fused mixture; ``log_weights`` are ``log pi_k'``.
     """
@@ -224,8 +243,14 @@ def fuse_user_command(
             raise ValueError(f"{name} must be ({b}, 3, 3), got {tuple(c.shape)}")
         if not torch.isfinite(c).all():
             raise ValueError(f"{name} contains NaN or inf")
-    s_u = regularize_covariance(user_trans_cov.double())[:, None].expand(b, k, 3, 3)
-    g_u = regularize_covariance(user_rot_cov.double())[:, None].expand(b, k, 3, 3)
+    if observed is None:
+        observed = torch.ones(b, 6, dtype=torch.bool, device=user.device)
+    elif observed.shape != (b, 6) or observed.dtype != torch.bool:
+        raise ValueError(f"observed must be a ({b}, 6) bool tensor, got {tuple(observed.shape)} {observed.dtype}")
+    s_u, missing_v = _missing_axes_covariance(regularize_covariance(user_trans_cov.double()), observed[:, :3])
+    g_u, missing_w = _missing_axes_covariance(regularize_covariance(user_rot_cov.double()), observed[:, 3:])
+    s_u, g_u = s_u[:, None].expand(b, k, 3, 3), g_u[:, None].expand(b, k, 3, 3)
+    missing_v, missing_w = missing_v[:, None], missing_w[:, None]
     v_u = user[:, None, :3].expand(b, k, 3)
     w_u = user[:, None, 3:].expand(b, k, 3)
 
@@ -251,7 +276,7 @@ def fuse_user_command(
         omega_r, gamma_r = _rotation_at(mixture, mu)
     else:
         omega_r, gamma_r = omega_f, gamma_f
-    log_lik_w = gaussian_log_prob(w_u, omega_r, gamma_r + g_u)
+    log_lik_w, rot_maha = gaussian_log_prob_and_mahalanobis_sq(w_u, omega_r, gamma_r + g_u)
     post_lw = prior_lw + log_lik_v + log_lik_w
     post_lw = torch.where(torch.isnan(post_lw), torch.full_like(post_lw, -math.inf), post_lw)
     no_support = ~torch.isfinite(post_lw).any(-1, keepdim=True)
@@ -266,7 +291,23 @@ def fuse_user_command(
         rot_cov=gamma_post,
         prior_log_weights=prior_lw,
         trans_mahalanobis_sq=trans_maha,
+        rot_mahalanobis_sq=rot_maha,
+        trans_class_mahalanobis_sq=mahalanobis_sq(v_u, mu, sigma + missing_v),
+        rot_class_mahalanobis_sq=mahalanobis_sq(w_u, omega_r, gamma_r + missing_w),
+        user_twist=user,
+        observed=observed,
     )
+
+
+def _missing_axes_covariance(cov: torch.Tensor, observed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``cov (B, 3, 3)`` restricted to the ``observed (B, 3)`` axes, plus ``MAX_VARIANCE`` on the others.
+
+    Returns ``(cov', missing)`` with ``missing = diag(MAX_VARIANCE on unobserved axes)``, the term
+    that turns a Mahalanobis distance into that of the observed axes' marginal.
+    """
+    keep = (observed[:, :, None] & observed[:, None, :]).to(cov.dtype)
+    missing = torch.diag_embed((~observed).to(cov.dtype) * MAX_VARIANCE)
+    return cov * keep + missing, missing
 
 
 # --------------------------------------------------------------------------- mode search
@@ -388,6 +429,7 @@ def rotation_entropy_bounds(mixture: FactorizedTwistMixture) -> tuple[torch.Tens
 # --------------------------------------------------------------------------- OOD gate
 
 
+@functools.lru_cache(maxsize=64)
 def ood_threshold(alpha: float = 0.85, dof: int = 3) -> float:
     """``chi2.ppf(alpha, dof)``: the gate on the squared Mahalanobis distance (NOTES.md)."""
     from scipy.stats import chi2
@@ -397,12 +439,46 @@ def ood_threshold(alpha: float = 0.85, dof: int = 3) -> float:
     return float(chi2.ppf(alpha, dof))
 
 
-def is_out_of_distribution(fused: FactorizedTwistMixture, threshold: float) -> torch.Tensor:
-    """``(B,)`` bool: the user translation is farther than ``threshold`` (squared Mahalanobis,
-    ``Sigma_k + S_u``) from *every* class, i.e. from the nearest one."""
-    if fused.trans_mahalanobis_sq is None:
+OOD_COVARIANCES = ("class", "predictive")
+OOD_DOFS = ("translation", "twist")
+"""Which blocks of the user command the OOD test looks at (see :func:`is_out_of_distribution`)."""
+
+
+def is_out_of_distribution(
+    fused: FactorizedTwistMixture, alpha: float, covariance: str = "class", dofs: str = "twist"
+) -> torch.Tensor:
+    """``(B,)`` bool: the user command is farther than ``chi2.ppf(alpha, d)`` (squared Mahalanobis,
+    ``d`` the number of observed axes tested) from *every* class, i.e. from the nearest one.
+
+    ``covariance``: ``"class"`` measures the distance under each class's own covariance (NOTES.md:
+    "the Mahalanobis distance of the user translation to the nearest class": is the command a
+    plausible draw of one of the prior's maneuvers?); ``"predictive"`` adds the user covariance
+    (``Sigma_k + S_u``: the density of a noisy command; with the authors' ``S_u`` of 0.01-0.03
+    (m/s)^2 it accepts any command within ~0.3 m/s of a class mean, so a prior that has stalled
+    keeps control).
+
+    ``dofs``: ``"translation"`` (NOTES.md) tests ``v_u``; ``"twist"`` the sum of the translation
+    and rotation distances to the same class (``v_u`` and ``w_u`` are independent given the
+    class). Only the observed axes of the command count (``fused.observed``; the marginal
+    distance, ``d`` = their number); with none observed the command is never OOD.
+    """
+    if covariance not in OOD_COVARIANCES:
+        raise ValueError(f"covariance must be one of {OOD_COVARIANCES}, got {covariance!r}")
+    if dofs not in OOD_DOFS:
+        raise ValueError(f"dofs must be one of {OOD_DOFS}, got {dofs!r}")
+    if covariance == "class":
+        trans, rot = fused.trans_class_mahalanobis_sq, fused.rot_class_mahalanobis_sq
+    else:
+        trans, rot = fused.trans_mahalanobis_sq, fused.rot_mahalanobis_sq
+    if trans is None or rot is None or fused.observed is None:
         raise ValueError("this mixture carries no user command (use fuse_user_command)")
-    return fused.trans_mahalanobis_sq.min(-1).values > threshold
+    tested = fused.observed[:, :3].sum(-1)
+    maha = trans
+    if dofs == "twist":
+        tested = tested + fused.observed[:, 3:].sum(-1)
+        maha = trans + rot
+    thresholds = torch.tensor([math.inf] + [ood_threshold(alpha, d) for d in range(1, 7)], dtype=maha.dtype)
+    return maha.min(-1).values > thresholds[tested]
 
 
 # --------------------------------------------------------------------------- user covariance

@@ -4,15 +4,18 @@ Per step and batch element, one of three modes (``SharedControlDiagnostics.modes
 
 * ``"shared"``: a user command arrived and is in distribution -> fuse it with the
   prior's step-0 mixture (:func:`posterior.fuse_user_command`) and execute the mode of
-  the fused mixture (:func:`posterior.mixture_mode`).
+  the fused mixture (:func:`posterior.mixture_mode`). The zero axes of a command are, by
+  default (``uncommanded_axes="missing"``), axes the device does not give: they are not
+  fused, so the prior fills them in (a mode-switching or single-axis user).
 * ``"autonomous"``: no user command (``None`` or all zeros), asynchronous mode on, and
   the EE is farther than ``autonomy_cutoff_distance`` from every scene point -> execute
   the prior's most likely action (argmax class, then its Gaussians' means; :func:`most_likely_twist`).
 * ``"user_only"``: the user's own command is executed (zeros if none). Happens (a) with
   no command within ``autonomy_cutoff_distance`` of the object surface (the user has
-  control for the final approach), (b) in the out-of-distribution window: the user
-  translation is farther than ``chi2.ppf(ood_alpha, 3)`` (squared Mahalanobis,
-  ``Sigma_k + S_u``) from every class -> this step and the next ``ood_steps`` steps, class
+  control for the final approach), (b) in the out-of-distribution window: the command's
+  observed axes are farther than ``chi2.ppf(ood_alpha, d)`` (squared Mahalanobis under the
+  class covariances, ``d`` observed axes; :func:`posterior.is_out_of_distribution` for the
+  NOTES.md variants) from every class -> this step and the next ``ood_steps`` steps, class
   weights kept at the prior's (no re-weighting with an OOD command); a new OOD command
   inside the window restarts it, (c) the documented fallback for an empty grasp set:
   with no candidate grasps the prior has nothing to condition on, so the policy is not
@@ -36,6 +39,7 @@ from rtv3_maniskill.shared_control.twist_utils import as_twist, check_speed_limi
 from rtv3_maniskill.twist_mixture import TwistMixture
 
 MODES = ("shared", "autonomous", "user_only")
+UNCOMMANDED_AXES = ("missing", "zero")
 
 
 class StepZeroPrior(Protocol):
@@ -61,11 +65,24 @@ class SharedControlConfig:
     """Asynchronous autonomy is off within this distance (m) of the nearest scene point.
     The paper gives no number; 7 cm sits just outside the 5 cm pre-grasp offset."""
     input_threshold: float = 1e-6
-    """A user twist with norm <= this counts as "no command"."""
+    """A user twist with norm <= this counts as "no command"; an axis with ``|u_i|`` <= this
+    counts as not commanded (see ``uncommanded_axes``)."""
     ood_alpha: float = 0.85
     """OOD gate: chi2 quantile on the squared Mahalanobis distance (3 DoF)."""
     ood_steps: int = 3
     """Steps after an OOD command during which the user's command is executed."""
+    ood_covariance: str = "class"
+    """Covariance of the OOD test's Mahalanobis distance: ``"class"`` (``Sigma_k``, NOTES.md's
+    "distance to the nearest class") or ``"predictive"`` (``Sigma_k + S_u``); see
+    :func:`posterior.is_out_of_distribution`."""
+    ood_dofs: str = "twist"
+    """What the OOD test looks at: ``"twist"`` (translation and rotation) or ``"translation"``
+    (NOTES.md); see :func:`posterior.is_out_of_distribution`."""
+    uncommanded_axes: str = "missing"
+    """How a zero axis of a user command (``|u_i| <= input_threshold``) of a command that is not
+    zero altogether is read: ``"missing"``, an axis the device does not give (a mode-switching
+    or single-axis user), so neither the fusion nor the OOD test uses it and the prior fills it
+    in; ``"zero"`` (the paper's and NOTES.md's reading), an observation "hold still" on that axis."""
     user_trans_var: float = 0.03
     """Initial S_u diagonal ((m/s)^2)."""
     user_rot_var: float = 0.1
@@ -88,6 +105,12 @@ class SharedControlConfig:
             raise ValueError(f"autonomy_cutoff_distance must be >= 0, got {self.autonomy_cutoff_distance}")
         if self.ood_steps < 0:
             raise ValueError(f"ood_steps must be >= 0, got {self.ood_steps}")
+        if self.ood_covariance not in posterior.OOD_COVARIANCES:
+            raise ValueError(f"ood_covariance must be one of {posterior.OOD_COVARIANCES}, got {self.ood_covariance!r}")
+        if self.ood_dofs not in posterior.OOD_DOFS:
+            raise ValueError(f"ood_dofs must be one of {posterior.OOD_DOFS}, got {self.ood_dofs!r}")
+        if self.uncommanded_axes not in UNCOMMANDED_AXES:
+            raise ValueError(f"uncommanded_axes must be one of {UNCOMMANDED_AXES}, got {self.uncommanded_axes!r}")
         if self.reweight_rotation_at not in ("prior", "fused"):
             raise ValueError(f"reweight_rotation_at must be 'prior' or 'fused', got {self.reweight_rotation_at!r}")
         if self.mode_search_starts < 1 or self.mode_search_iters < 0 or not self.mode_search_tol >= 0:
@@ -206,7 +229,6 @@ class SharedController:
                 raise TypeError(f"policy must have a callable {name}(); {type(policy).__name__} has none")
         self.policy = policy
         self.config = config or SharedControlConfig()
-        self._ood_threshold = posterior.ood_threshold(self.config.ood_alpha)
         self._batch_size: int | None = None
         self._ood_remaining = torch.zeros(0, dtype=torch.long)
         self._user_cov: posterior.UserCovarianceEstimator | None = None
@@ -291,8 +313,10 @@ class SharedController:
             fused = None
             fired = torch.zeros(b, dtype=torch.bool)
             if (active & ~no_grasps).any():
-                fused = posterior.fuse_user_command(mixture, user, s_u, g_u, c.reweight_rotation_at, prior=prior)
-                fired = active & posterior.is_out_of_distribution(fused, self._ood_threshold) & ~no_grasps
+                observed = (user.abs() > c.input_threshold) if c.uncommanded_axes == "missing" else None
+                fused = posterior.fuse_user_command(
+                    mixture, user, s_u, g_u, c.reweight_rotation_at, prior=prior, observed=observed)
+                fired = active & posterior.is_out_of_distribution(fused, c.ood_alpha, c.ood_covariance, c.ood_dofs) & ~no_grasps
             self._ood_remaining = torch.where(fired, torch.full_like(self._ood_remaining, c.ood_steps), self._ood_remaining)
             ood = (in_window | fired) & ~no_grasps
             shared = active & ~ood & ~no_grasps
