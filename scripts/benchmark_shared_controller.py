@@ -3,11 +3,11 @@
 Usage: ``python scripts/benchmark_shared_controller.py [--policy.path DIR] [--steps 200] [--threads 1]``
 
 Times :meth:`SharedController.step` (prior forward pass + posterior fusion + mode search) on real
-``GraspClutter-v1`` observations, N = 2048 points and M = 64 grasps, one intra-op thread. The env
-is stepped between calls (with the controller's output, a noisy simulated user driving) but only
-the controller call is timed. Three cases: ``shared`` (user command each step),
-``autonomous`` (no command, asynchronous mode far from the objects) and ``all`` (both).
-Without a checkpoint an untrained ``RTV3Policy(RTV3Config())`` of the same size is used
+``GraspClutter-v1`` observations, the checkpoint's N points and M grasps (N = 2048, M = 64
+without one), one intra-op thread. The env is stepped between calls (with the controller's
+output; a mode-switching simulated user who pauses 10 steps after every 20 drives) but only the
+controller call is timed, per mode the step ran in (``shared``, ``autonomous``, ``user_only``:
+every mode runs the prior) and over ``all`` steps. Without a checkpoint an untrained ``RTV3Policy(RTV3Config())`` of the same size is used
 (latency does not depend on the weights).
 """
 
@@ -39,6 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.steps < 1 or args.threads < 1:
         parser.error("--steps and --threads must be >= 1")
     torch.set_num_threads(args.threads)
+    from tqdm import tqdm
 
     import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
     from rtv3_maniskill.features import observation_from_env
@@ -63,30 +64,31 @@ def main(argv: list[str] | None = None) -> int:
     # The timed controller is driven directly (no wrapper method) so only step() is measured.
     config = SharedControlConfig(max_linear_speed=0.3, max_angular_speed=1.2)
     controller = SharedController(policy, config)
-    results: dict[str, list[float]] = {"shared": [], "autonomous": [], "all": []}
-    for case in ("shared", "autonomous"):
-        env.reset(seed=args.seed)
-        controller.reset()
-        user = make_user("noisy", seed=0)
-        user.reset(env.user_goal())
-        obs = env._obs
-        for i in range(args.warmup + args.steps):
-            pose = env.base.tcp_pose_matrix[0].double()
-            command = user(pose)[None] if case == "shared" else None
-            observation = observation_from_env(obs)
-            start = time.perf_counter()
-            twist = controller.step(observation, command)
-            elapsed = time.perf_counter() - start
-            mode = controller.last_diagnostics.modes[0]
-            if i >= args.warmup and mode == case:
-                results[case].append(elapsed)
-                results["all"].append(elapsed)
-            obs, _, _, _, info = env.env.step(torch.cat([twist[0].float(), torch.ones(1)])[None])
-            if bool(info["success"][0]) or i % 60 == 59:  # restart the approach to stay in the timed mode
-                env.reset(seed=args.seed)
-                controller.reset()
-                user.reset(env.user_goal())
-                obs = env._obs
+    # A mode-switching user who pauses (20 steps of commands, 10 of none) gives shared,
+    # user-only (OOD window) and, away from the scene surface, autonomous steps; every step
+    # runs the prior, so all of them count.
+    results: dict[str, list[float]] = {"shared": [], "autonomous": [], "user_only": [], "all": []}
+    env.reset(seed=args.seed)
+    controller.reset()
+    user = make_user("mode_switching", seed=0, pauses=(20, 10))
+    user.reset(env.user_goal())
+    obs = env._obs
+    for i in tqdm(range(args.warmup + args.steps), desc="SharedController.step", unit="step"):
+        pose = env.base.tcp_pose_matrix[0].double()
+        command = user(pose)[None]
+        observation = observation_from_env(obs)
+        start = time.perf_counter()
+        twist = controller.step(observation, command)
+        elapsed = time.perf_counter() - start
+        if i >= args.warmup:
+            results[controller.last_diagnostics.modes[0]].append(elapsed)
+            results["all"].append(elapsed)
+        obs, _, _, _, info = env.env.step(torch.cat([twist[0].float(), torch.ones(1)])[None])
+        if bool(info["success"][0]) or i % 90 == 89:  # restart the approach
+            env.reset(seed=args.seed)
+            controller.reset()
+            user.reset(env.user_goal())
+            obs = env._obs
     env.close()
 
     print(f"{'case':12s} {'n':>5s} {'median ms':>10s} {'p90 ms':>8s} {'max ms':>8s}")

@@ -10,6 +10,7 @@ import torch
 
 from rtv3_maniskill.se3 import se3_exp, se3_log
 from rtv3_maniskill.shared_control.simulated_users import (
+    IntermittentUser,
     LaggyUser,
     LowDoFUser,
     ModeSwitchingUser,
@@ -95,6 +96,31 @@ def test_mode_switching_user_alternates_20_translation_and_20_rotation_steps():
             assert torch.equal(u[:3], torch.zeros(3, dtype=torch.float64)), step
     user.reset(GOAL)
     assert user.translation_mode
+
+
+def test_intermittent_user_rests_between_commanding_phases_and_pauses_the_inner_clock():
+    user = make_user("mode_switching", pauses=(20, 10))
+    assert isinstance(user, IntermittentUser)
+    user.reset(GOAL)
+    e = se3_log(torch.linalg.inv(START) @ GOAL)
+    commands = [user(START) for _ in range(90)]
+    for step, u in enumerate(commands):
+        if step % 30 >= 20:  # resting: no command
+            assert torch.equal(u, torch.zeros(6, dtype=torch.float64)), step
+    # the mode-switching clock stops during rests: steps 0-19 translate, 30-49 rotate, 60-79 translate
+    torch.testing.assert_close(commands[0][:3], e[:3])
+    torch.testing.assert_close(commands[30][3:], e[3:])
+    assert torch.equal(commands[30][:3], torch.zeros(3, dtype=torch.float64))
+    torch.testing.assert_close(commands[60][:3], e[:3])
+    user.reset(GOAL)
+    assert not user.resting and torch.equal(user(START)[3:], torch.zeros(3, dtype=torch.float64))
+    never = make_user("ideal", pauses=(5, 0))
+    never.reset(GOAL)
+    assert all(torch.linalg.norm(never(START)) > 0 for _ in range(12))
+    with pytest.raises(ValueError, match="command_steps >= 1"):
+        make_user("noisy", pauses=(0, 5))
+    with pytest.raises(ValueError, match="pauses must be"):
+        make_user("noisy", pauses=(5,))
 
 
 def test_single_dof_user_holds_the_weighted_largest_dof_for_10_steps_with_gain_2():

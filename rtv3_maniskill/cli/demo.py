@@ -18,14 +18,25 @@ MODE_COLORS = {"autonomous": ("0.55", 0.30, "autonomous (prior's most likely act
                "user_only": ("tab:red", 0.12, "user only (OOD / near the surface)")}
 
 
+def _pauses(text: str) -> tuple[int, int]:
+    parts = [p.strip() for p in str(text).split(",")]
+    if len(parts) != 2 or not all(p.isdigit() for p in parts) or int(parts[0]) < 1:
+        raise argparse.ArgumentTypeError(f"expected C,R (command steps >= 1, rest steps >= 0), got {text!r}")
+    return int(parts[0]), int(parts[1])
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
                         help="RT-V3 checkpoint folder (config.json + model.safetensors); "
                              "default: rtv3_maniskill/checkpoints/rtv3_grasp_clutter")
     parser.add_argument("--seed", type=int, default=900000, help="scene seed (same seed, same scene and target)")
-    parser.add_argument("--user", default="noisy",
+    parser.add_argument("--user", default="mode_switching",
                         help="simulated user: noisy, laggy, mode_switching, single_dof, low_dof or ideal")
     parser.add_argument("--user-seed", type=int, default=0, help="seed of the user's randomness")
+    parser.add_argument("--pauses", type=_pauses, default=(20, 10), metavar="C,R",
+                        help="the user pauses: C steps of commands, then R steps of none, repeated "
+                             "(RT-V3 acts on its own while the user rests: asynchronous autonomy); "
+                             "default 20,10; 20,0 = never pauses")
     parser.add_argument("--target-grasp", type=int, default=None,
                         help="index of the target grasp (default: the episode's own draw)")
     parser.add_argument("--max-steps", type=int, default=150, help="control steps (20 Hz)")
@@ -176,6 +187,10 @@ def plot_demo(path: Path, rtv3, direct, title: str, success_threshold: float, to
     plt.close(fig)
 
 
+def _pause_text(pauses: tuple[int, int] | None) -> str:
+    return "" if pauses is None or pauses[1] == 0 else f" + pauses {pauses[0]}/{pauses[1]}"
+
+
 def _outcome(result) -> str:
     from rtv3_maniskill.features import DT
 
@@ -195,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
     if args.max_steps < 1:
         raise SystemExit(f"error: --max-steps must be >= 1, got {args.max_steps}")
     try:
-        make_user(args.user)
+        make_user(args.user, pauses=args.pauses)
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     try:
@@ -218,12 +233,13 @@ def run(args: argparse.Namespace) -> int:
     objects = ", ".join(o.name for o in base.layouts[0].objects)
     count = int(base.grasps_mask[0].sum())
     print(f"scene {args.seed}: {len(base.layouts[0].objects)} objects ({objects}), {count} grasp candidates; "
-          f"target grasp {target}; user '{args.user}' (seed {args.user_seed}); up to {args.max_steps} steps")
+          f"target grasp {target}; user '{args.user}' (seed {args.user_seed}){_pause_text(args.pauses)}; "
+          f"up to {args.max_steps} steps")
 
-    rtv3 = run_episode(env, make_method("rtv3", policy=policy), make_user(args.user, args.user_seed),
+    rtv3 = run_episode(env, make_method("rtv3", policy=policy), make_user(args.user, args.user_seed, pauses=args.pauses),
                        max_steps=args.max_steps, record_frames=can_render, seed=args.seed, options=options)
     goal_px = _goal_pixels(env) if can_render else None
-    direct = run_episode(env, make_method("direct"), make_user(args.user, args.user_seed),
+    direct = run_episode(env, make_method("direct"), make_user(args.user, args.user_seed, pauses=args.pauses),
                          max_steps=args.max_steps, seed=args.seed, options=options)
     threshold = float(base.success_threshold)
     env.close()
@@ -238,7 +254,7 @@ def run(args: argparse.Namespace) -> int:
         except Exception as err:  # noqa: BLE001  (no ffmpeg writer: keep the plot)
             print(f"note: video not written ({type(err).__name__}: {err})")
     plot = args.output / "demo.png"
-    title = f"RT-V3 shared control, scene {args.seed}, target grasp {target}, user '{args.user}'"
+    title = f"RT-V3 shared control, scene {args.seed}, target grasp {target}, user '{args.user}'{_pause_text(args.pauses)}"
     plot_demo(plot, rtv3, direct, title, threshold)
     print(f"plot  -> {plot}")
 

@@ -19,6 +19,10 @@ Users (``make_user(name, seed)``):
   command ``2 e_i*`` on that DoF alone (gain 2: NOTES.md; the appendix writes ``e_i``). The
   DoF is held for the period, its value recomputed each step from the current ``e``.
 * ``low_dof``: translation only ``[v, 0]``.
+
+:class:`IntermittentUser` wraps any of them into a user who pauses (commands for a number of
+steps, then gives no command for a number of steps: the paper's motivation for asynchronous
+autonomy); ``make_user(name, seed, pauses=(command_steps, rest_steps))`` builds one.
 """
 
 from __future__ import annotations
@@ -197,13 +201,55 @@ USERS: dict[str, Callable[..., SimulatedUser]] = {
 """Registry: user name -> class."""
 
 
-def make_user(name: str, seed: int | None = None, **kwargs: Any) -> SimulatedUser:
+class IntermittentUser:
+    """A user who pauses: ``command_steps`` steps of ``inner``'s commands, then ``rest_steps``
+    steps of no command (a zero twist), repeated. ``inner`` is not called while resting, so its
+    own clock (mode-switching or single-DoF periods, lag) pauses too.
+
+    Args:
+        inner: the simulated user that gives the commands.
+        command_steps: steps of each commanding phase (>= 1).
+        rest_steps: steps of each pause (>= 0; 0 = never pauses).
+    """
+
+    def __init__(self, inner: SimulatedUser, command_steps: int, rest_steps: int) -> None:
+        if int(command_steps) < 1 or int(rest_steps) < 0:
+            raise ValueError(f"pauses need command_steps >= 1 and rest_steps >= 0, got {command_steps}, {rest_steps}")
+        self.inner = inner
+        self.command_steps, self.rest_steps = int(command_steps), int(rest_steps)
+        self.name = f"{inner.name}+pauses"
+        self.step_count = 0
+
+    def reset(self, goal_pose: Any) -> None:
+        self.inner.reset(goal_pose)
+        self.step_count = 0
+
+    @property
+    def resting(self) -> bool:
+        """True when the next call gives no command."""
+        return self.step_count % (self.command_steps + self.rest_steps) >= self.command_steps
+
+    def __call__(self, ee_pose: Any) -> torch.Tensor:
+        command = torch.zeros(6, dtype=torch.float64) if self.resting else self.inner(ee_pose)
+        self.step_count += 1
+        return command
+
+
+def make_user(name: str, seed: int | None = None, pauses: tuple[int, int] | None = None,
+              **kwargs: Any) -> SimulatedUser | IntermittentUser:
     """Build a simulated user by name (``-`` and ``_`` and case are interchangeable).
 
+    ``pauses=(command_steps, rest_steps)`` wraps it in an :class:`IntermittentUser`.
+
     Raises:
-        ValueError: unknown name (the message lists the known ones).
+        ValueError: unknown name (the message lists the known ones), or bad ``pauses``.
     """
     key = str(name).strip().lower().replace("-", "_")
     if key not in USERS:
         raise ValueError(f"unknown simulated user {name!r}; known users: {', '.join(sorted(USERS))}")
-    return USERS[key](seed=seed, **kwargs)
+    user = USERS[key](seed=seed, **kwargs)
+    if pauses is None:
+        return user
+    if len(pauses) != 2:
+        raise ValueError(f"pauses must be (command_steps, rest_steps), got {pauses!r}")
+    return IntermittentUser(user, *pauses)
