@@ -124,7 +124,6 @@ class FactorizedTwistMixture:
             class's rotation Gaussian of the class likelihood, under ``Gamma_k + G_u``.
         trans_class_mahalanobis_sq, rot_class_mahalanobis_sq: the same two under the class
             covariances ``Sigma_k`` / ``Gamma_k`` alone. All four ``None`` for a prior-only mixture.
-        user_twist: ``(B, 6)`` the fused user command (``None`` for a prior-only mixture).
         observed: ``(B, 6)`` bool, the command's axes that were fused (the others were treated
             as missing; ``None`` for a prior-only mixture).
     """
@@ -139,7 +138,6 @@ class FactorizedTwistMixture:
     rot_mahalanobis_sq: torch.Tensor | None = None
     trans_class_mahalanobis_sq: torch.Tensor | None = None
     rot_class_mahalanobis_sq: torch.Tensor | None = None
-    user_twist: torch.Tensor | None = None
     observed: torch.Tensor | None = None
 
     @property
@@ -294,7 +292,6 @@ def fuse_user_command(
         rot_mahalanobis_sq=rot_maha,
         trans_class_mahalanobis_sq=mahalanobis_sq(v_u, mu, sigma + missing_v),
         rot_class_mahalanobis_sq=mahalanobis_sq(w_u, omega_r, gamma_r + missing_w),
-        user_twist=user,
         observed=observed,
     )
 
