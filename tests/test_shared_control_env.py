@@ -12,7 +12,7 @@ import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
 from rtv3_maniskill.shared_control import make_user
-from rtv3_maniskill.shared_control.benchmark import BenchmarkConfig, BenchmarkError, run_benchmark
+from rtv3_maniskill.shared_control.benchmark import BenchmarkConfig, BenchmarkError, _check_config, run_benchmark
 from rtv3_maniskill.shared_control.env_wrapper import (
     DirectAssistance,
     RTV3Assistance,
@@ -183,15 +183,19 @@ def test_benchmark_writes_results_and_resumes_without_duplicates(tmp_path):
         run_benchmark(changed, progress=False)
 
 
-def test_benchmark_refuses_to_resume_with_other_weights_at_the_same_path(tmp_path):
-    from rtv3_maniskill.shared_control.benchmark import _check_config
-
+def _started_rtv3_benchmark(tmp_path, weights: bytes):
+    """A checkpoint folder holding ``weights`` and an RT-V3 benchmark output folder started with it."""
     ckpt = tmp_path / "ckpt"
     ckpt.mkdir()
-    (ckpt / "model.safetensors").write_bytes(b"old weights")
+    (ckpt / "model.safetensors").write_bytes(weights)
     config = BenchmarkConfig(output=tmp_path / "out", scenes=1, methods=["rtv3"])
     config.output.mkdir()
     _check_config(config.output, config.fingerprint(ckpt))
+    return ckpt, config
+
+
+def test_benchmark_refuses_to_resume_with_other_weights_at_the_same_path(tmp_path):
+    ckpt, config = _started_rtv3_benchmark(tmp_path, b"old weights")
     _check_config(config.output, config.fingerprint(ckpt))  # same weights: resumes
     (ckpt / "model.safetensors").write_bytes(b"new weights")  # retrained in place
     with pytest.raises(BenchmarkError, match="policy_weights_sha256"):
@@ -199,14 +203,7 @@ def test_benchmark_refuses_to_resume_with_other_weights_at_the_same_path(tmp_pat
 
 
 def test_benchmark_refuses_to_resume_with_other_shared_control_settings(tmp_path):
-    from rtv3_maniskill.shared_control.benchmark import _check_config
-
-    ckpt = tmp_path / "ckpt"
-    ckpt.mkdir()
-    (ckpt / "model.safetensors").write_bytes(b"weights")
-    default = BenchmarkConfig(output=tmp_path / "out", scenes=1, methods=["rtv3"])
-    default.output.mkdir()
-    _check_config(default.output, default.fingerprint(ckpt))
+    ckpt, default = _started_rtv3_benchmark(tmp_path, b"weights")
     assert default.fingerprint(ckpt)["shared_control"]["ood_covariance"] == "class"
     notes = BenchmarkConfig(output=default.output, scenes=1, methods=["rtv3"],
                             shared_control={"ood_covariance": "predictive", "uncommanded_axes": "zero"})

@@ -42,6 +42,8 @@ DEFAULT_USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
 DEFAULT_METHODS = ("direct", "ho", "rtv3")
 METHOD_LABELS = {"direct": "Direct", "ho": "HO", "rtv3": "RT-V3"}
 SCENE_SEED_STRIDE = 100000
+_SPEED_LIMIT_FIELDS = ("max_linear_speed", "max_angular_speed")
+"""SharedControlConfig fields the benchmark takes from the env's controller, not from its settings."""
 
 
 class BenchmarkError(ValueError):
@@ -100,7 +102,7 @@ class BenchmarkConfig:
         if self.ho_variant not in VARIANTS:
             raise BenchmarkError(f"unknown HO variant {self.ho_variant!r}; known: {', '.join(VARIANTS)}")
         self.shared_control = dict(self.shared_control)
-        for key in ("max_linear_speed", "max_angular_speed"):
+        for key in _SPEED_LIMIT_FIELDS:
             if key in self.shared_control:
                 raise BenchmarkError(f"shared_control may not set {key}: the speed limits come from the env")
         try:
@@ -121,7 +123,7 @@ class BenchmarkConfig:
         import dataclasses
 
         settings = dataclasses.asdict(self.shared_control_config(0.3, 1.2))
-        for key in ("max_linear_speed", "max_angular_speed"):
+        for key in _SPEED_LIMIT_FIELDS:
             settings.pop(key)
         return settings
 
@@ -371,7 +373,6 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     if policy is not None:
         env_kwargs.update(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps))
     env = SharedControlEnv(rendered_context=config.rendered_context, **env_kwargs)
-    env.reset(seed=config.scene_seeds()[0])
     shared_config = config.shared_control_config(*controller_speed_limits(env.base))
     methods = {m: make_method(m, policy=policy, ho_variant=config.ho_variant, config=shared_config)
                for m in config.methods}
