@@ -37,21 +37,23 @@ def skew(w: torch.Tensor) -> torch.Tensor:
     return (w @ _SKEW.to(w)).reshape(*w.shape[:-1], 3, 3)
 
 
-def _so3_coefficients(theta: torch.Tensor):
-    """Series-safe ``A = sin t / t``, ``B = (1 - cos t) / t^2``, ``C = (t - sin t) / t^3``."""
+def _so3_coefficients(theta: torch.Tensor, with_c: bool = True):
+    """Series-safe ``A = sin t / t``, ``B = (1 - cos t) / t^2``, ``C = (t - sin t) / t^3`` (None
+    unless ``with_c``)."""
     small = theta < 1e-4
-    t = torch.where(small, torch.ones_like(theta), theta)
-    t2 = t * t
-    a = torch.where(small, 1 - theta**2 / 6, torch.sin(t) / t)
-    b = torch.where(small, 0.5 - theta**2 / 24, (1 - torch.cos(t)) / t2)
-    c = torch.where(small, 1.0 / 6 - theta**2 / 120, (t - torch.sin(t)) / (t2 * t))
+    t = torch.where(small, 1.0, theta)
+    theta_sq = theta * theta
+    sin_t = torch.sin(t)
+    a = torch.where(small, 1 - theta_sq / 6, sin_t / t)
+    b = torch.where(small, 0.5 - theta_sq / 24, (1 - torch.cos(t)) / (t * t))
+    c = torch.where(small, 1.0 / 6 - theta_sq / 120, (t - sin_t) / (t * t * t)) if with_c else None
     return a, b, c
 
 
 def so3_exp(w: torch.Tensor) -> torch.Tensor:
     """Rodrigues: rotation vector ``(..., 3)`` -> rotation matrix ``(..., 3, 3)``."""
     theta = w.norm(dim=-1)
-    a, b, _ = _so3_coefficients(theta)
+    a, b, _ = _so3_coefficients(theta, with_c=False)
     k = skew(w)
     eye = torch.eye(3, dtype=w.dtype, device=w.device).expand(k.shape)
     return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)

@@ -508,6 +508,29 @@ def test_no_valid_grasp_uses_the_null_token(policy: RTV3Policy):
     assert torch.isfinite(loss)
 
 
+def test_grasp_encoding_ignores_padding_slots_and_their_order(policy: RTV3Policy):
+    # Inference drops padded grasp slots before the set encoder (a scene fills ~10 of 64); the
+    # encoding of a set must not depend on where the padding sits, how much there is, or the
+    # order of the valid grasps, in a batch of rows with different counts.
+    torch.manual_seed(3)
+    encoder = policy.model.grasp_encoder.eval()
+    m, f = 12, policy.model.grasp_feature_dim
+    feat = torch.randn(3, m, f)
+    valid = torch.zeros(3, m, dtype=torch.bool)
+    valid[0, [1, 4, 9]] = True
+    valid[1, [0, 2, 3, 5, 6, 11]] = True
+    valid[2, :2] = True
+    query = torch.randn(3, encoder.decoder.query.in_features)
+    with torch.no_grad():
+        packed = encoder(feat, valid, query)
+        for i in range(3):
+            own = feat[i][valid[i]]
+            shuffled = own[torch.randperm(own.shape[0])]
+            padded = torch.cat([shuffled, torch.randn(5, f)])[None]  # garbage padding at the end
+            alone = encoder(padded, torch.arange(padded.shape[1])[None] < own.shape[0], query[i : i + 1])
+            torch.testing.assert_close(alone[0], packed[i], atol=1e-5, rtol=1e-5)
+
+
 def test_grasp_subset_augmentation_keeps_the_target():
     from rtv3_maniskill.policies.rtv3.batch import SceneContext, subsample_grasps
 

@@ -228,7 +228,7 @@ def fuse_user_command(
     Returns:
         The fused mixture; ``log_weights`` are ``log pi_k'``.
     """
-    b, k = _check_mixture(mixture)
+    b, k = _check_mixture(mixture) if prior is None else tuple(prior.log_weights.shape)  # prior: checked there
     if reweight_rotation_at not in ("prior", "fused"):
         raise ValueError(f"reweight_rotation_at must be 'prior' or 'fused', got {reweight_rotation_at!r}")
     user = user_twist.double()

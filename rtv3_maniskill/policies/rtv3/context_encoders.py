@@ -16,6 +16,24 @@ from torch import nn
 from rtv3_maniskill.policies.rtv3.point_encoder import PointTransformerEncoder
 
 
+def compact_valid_rows(tokens: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Drop padding from a set: ``tokens (B, M, F)``, ``valid (B, M)`` bool -> ``(B, M', F)``, ``(B, M')``.
+
+    Each row's valid entries move to the front (in their order) and the columns no row needs
+    are cut, ``M' = max_b sum valid[b]``. For an unordered, masked set (no positional encoding,
+    padding masked as keys) the encodings are unchanged; attention simply skips the padding
+    (a scene offers ~10 of the 64 grasp slots).
+    """
+    counts = valid.sum(1)
+    width = int(counts.max()) if valid.numel() else 0
+    if width == valid.shape[1]:
+        return tokens, valid
+    if bool((valid[:, :width].sum(1) == counts).all()):  # already packed at the front
+        return tokens[:, :width], valid[:, :width]
+    order = torch.argsort((~valid).to(torch.int8), dim=1, stable=True)[:, :width]
+    return torch.gather(tokens, 1, order[..., None].expand(-1, -1, tokens.shape[-1])), torch.gather(valid, 1, order)
+
+
 class QueryDecoderLayer(nn.Module):
     """Transformer decoder layer (post-norm, as ``nn.TransformerDecoderLayer``) for a single query token.
 
@@ -92,6 +110,7 @@ class GraspEncoder(nn.Module):
 
     def forward(self, grasp_feat: torch.Tensor, valid: torch.Tensor, h_dynamics: torch.Tensor) -> torch.Tensor:
         """``grasp_feat (B, M, F)`` EE-frame grasp features, ``valid (B, M)`` -> ``h_grasp (B, dim)``."""
+        grasp_feat, valid = compact_valid_rows(grasp_feat, valid)
         tokens = self.embed(grasp_feat)
         if tokens.shape[1] > 0:
             # A fully masked row would give NaN attention; such rows are ignored by the decoder anyway.

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 
@@ -22,12 +23,18 @@ class AxisGaussian:
     Attributes:
         mean: ``(..., 3)``.
         log_sigma: ``(..., 3)`` log standard deviations along the principal axes.
-        axes: ``(..., 3, 3)`` rotation ``R`` whose columns are the principal axes.
+        axes_rotvec: ``(..., 3)`` rotation vector of ``R``, whose columns are the principal axes
+            (``axes``, built on first use: the most-likely rollout needs only the means).
     """
 
     mean: torch.Tensor
     log_sigma: torch.Tensor
-    axes: torch.Tensor
+    axes_rotvec: torch.Tensor
+
+    @cached_property
+    def axes(self) -> torch.Tensor:
+        """``(..., 3, 3)`` rotation ``R = Exp(axes_rotvec)``."""
+        return se3.so3_exp(self.axes_rotvec)
 
     @classmethod
     def from_raw(cls, raw: torch.Tensor, log_sigma_min: float, log_sigma_max: float) -> "AxisGaussian":
@@ -35,7 +42,7 @@ class AxisGaussian:
         return cls(
             mean=raw[..., 0:3],
             log_sigma=raw[..., 3:6].clamp(log_sigma_min, log_sigma_max),
-            axes=se3.so3_exp(raw[..., 6:9]),
+            axes_rotvec=raw[..., 6:9],
         )
 
     def covariance(self) -> torch.Tensor:
@@ -56,7 +63,7 @@ class AxisGaussian:
 
     def scaled(self, factor: float) -> "AxisGaussian":
         """The distribution of ``factor * y`` (used to undo the translation scale)."""
-        return AxisGaussian(self.mean * factor, self.log_sigma + math.log(factor), self.axes)
+        return AxisGaussian(self.mean * factor, self.log_sigma + math.log(factor), self.axes_rotvec)
 
 
 @dataclass

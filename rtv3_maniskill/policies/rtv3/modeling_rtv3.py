@@ -94,6 +94,12 @@ class RTV3Policy(PreTrainedPolicy):
     def get_optim_params(self) -> list[dict]:
         return [{"params": [p for p in self.parameters() if p.requires_grad]}]
 
+    def _ensure_eval(self) -> None:
+        """Inference runs in eval mode. ``eval()`` walks every submodule (~1 ms for this network),
+        so it runs only when the policy is in training mode (``train()`` / ``eval()`` set the whole tree)."""
+        if self.training:
+            self.eval()
+
     def reset(self) -> None:
         """Forget the observation history and any queued actions (call at every episode start)."""
         self._history: deque[Tensor] = deque(maxlen=self.config.n_obs_steps)
@@ -134,7 +140,7 @@ class RTV3Policy(PreTrainedPolicy):
         Runs the model every ``n_action_steps`` steps (default 1: closed loop) and queues the rest.
         ``update_history=False`` reads a single-step observation without appending it to the history.
         """
-        self.eval()
+        self._ensure_eval()
         inputs = self._inference_inputs(batch, update_history)
         if len(self._action_queue) == 0:
             steps = self.config.n_action_steps
@@ -145,21 +151,21 @@ class RTV3Policy(PreTrainedPolicy):
     @torch.inference_mode()
     def predict_action_chunk(self, batch: dict[str, Tensor], update_history: bool = True, **kwargs) -> Tensor:
         """Most likely future twists ``(B, H, 6)`` (argmax z, then the mode of each Gaussian)."""
-        self.eval()
+        self._ensure_eval()
         inputs = self._inference_inputs(batch, update_history)
         return self.model.most_likely(inputs, self.config.horizon, int(self.train_step))
 
     @torch.inference_mode()
     def predict_modes(self, batch: dict[str, Tensor], update_history: bool = True) -> tuple[Tensor, Tensor]:
         """Most likely trajectory per maneuver class ``(B, K, H, 6)`` and log p(z|h0) ``(B, K)`` (Best-of-Mode)."""
-        self.eval()
+        self._ensure_eval()
         inputs = self._inference_inputs(batch, update_history)
         return self.model.modes(inputs, self.config.horizon, int(self.train_step))
 
     @torch.no_grad()
     def predict_step0_mixture(self, batch: dict[str, Tensor], update_history: bool = True) -> TwistMixture:
         """Step-0 Gaussian mixture over ``a_0`` for the posterior (paper Sec. V), m/s and rad/s, EE frame."""
-        self.eval()
+        self._ensure_eval()
         inputs = self._inference_inputs(batch, update_history)
         return self.model.step0_mixture(inputs, int(self.train_step))
 

@@ -52,14 +52,16 @@ def morton_code(grid: torch.Tensor, order: str = "z") -> torch.Tensor:
 
     ``order="z-trans"`` swaps the x and y axes (PTv3's transposed z-order).
     """
-    if order == "z":
-        axes = (0, 1, 2)
-    elif order == "z-trans":
-        axes = (1, 0, 2)
-    else:
+    shifts = _ORDER_SHIFTS.get(order)
+    if shifts is None:
         raise ValueError(f"unknown serialization order {order!r}; use 'z' or 'z-trans'")
-    spread = _spread_table(grid.device)[grid]  # (L, 3)
-    return spread[:, axes[0]] | (spread[:, axes[1]] << 1) | (spread[:, axes[2]] << 2)
+    spread = _spread_table(grid.device)[grid]  # (L, 3), two zero bits between the bits of each axis
+    # The shifted axes occupy disjoint bits, so their sum is their bitwise OR.
+    return (spread << shifts.to(grid.device)).sum(-1)
+
+
+_ORDER_SHIFTS = {"z": torch.tensor([0, 1, 2]), "z-trans": torch.tensor([1, 0, 2])}
+"""Bit offset of x, y, z in the interleaved code (z-trans swaps x and y)."""
 
 
 @dataclass
