@@ -364,25 +364,29 @@ def mixture_mode(
     means = mixture.means  # (B, K, 6)
     b, k, _ = means.shape
     whitened = _whitened_components(mixture)  # factorised once, reused by every iteration
-    at_means = torch.logsumexp(_component_log_densities(means, mixture, whitened), -1)  # (B, K)
+    at_means_components = _component_log_densities(means, mixture, whitened)  # (B, K, K)
+    at_means = torch.logsumexp(at_means_components, -1)  # (B, K)
     s = min(num_starts, k)
-    start_idx = at_means.topk(s, dim=-1).indices  # (B, S)
+    start_density, start_idx = at_means.topk(s, dim=-1)  # (B, S)
     x = torch.gather(means, 1, start_idx[..., None].expand(b, s, 6))
-    candidates = [x]
+    component = torch.gather(at_means_components, 1, start_idx[..., None].expand(b, s, k))  # (B, S, K) at x
+    candidates, densities = [x], [start_density]
     precisions = whitened[0].transpose(-1, -2) @ whitened[0]  # P_k = W_k^T W_k, (B, K, 6, 6)
     prec_means = (precisions @ means.unsqueeze(-1)).squeeze(-1)  # (B, K, 6)
     for _ in range(num_iters):
-        resp = torch.softmax(_component_log_densities(x, mixture, whitened), -1)  # (B, S, K)
+        resp = torch.softmax(component, -1)  # responsibilities r_k(x), (B, S, K)
         a = torch.einsum("bsk,bkij->bsij", resp, precisions)
         rhs = torch.einsum("bsk,bki->bsi", resp, prec_means)
         x_next = torch.linalg.solve(a, rhs.unsqueeze(-1)).squeeze(-1)
-        candidates.append(x_next)
         converged = bool(((x_next - x).abs() <= tol).all())
         x = x_next
+        component = _component_log_densities(x, mixture, whitened)
+        candidates.append(x)
+        densities.append(torch.logsumexp(component, -1))
         if converged:
             break
     cand = torch.cat(candidates, 1)  # (B, S*(iters+1), 6)
-    dens = torch.logsumexp(_component_log_densities(cand, mixture, whitened), -1)
+    dens = torch.cat(densities, 1)
     dens = torch.where(torch.isfinite(dens), dens, torch.full_like(dens, -math.inf))
     best = dens.argmax(-1)
     return cand[torch.arange(b), best]
