@@ -406,6 +406,27 @@ def test_no_input_far_from_objects_runs_the_prior_autonomously():
     torch.testing.assert_close(ctrl.last_diagnostics.class_weights[0].float(), torch.tensor([0.3, 0.7]))
 
 
+def test_autonomous_action_is_the_policys_most_likely_action():
+    # The controller reads the most likely action off the step-0 mixture it already has; it must
+    # equal what the policy's own select_action executes (argmax class, then the Gaussian means).
+    from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
+    from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
+
+    torch.manual_seed(0)
+    policy = RTV3Policy(RTV3Config(device="cpu", num_points=8, max_grasps=4)).eval()
+    gen = torch.Generator().manual_seed(1)
+    obs = make_observation(ee=(0.0, 0.0, 0.3), grasps=2)
+    obs[features.GRASPS] = torch.cat([torch.rand(4, 3, generator=gen) * 0.1, torch.tensor([[0.0, 1.0, 0.0, 0.0]] * 4),
+                                      torch.full((4, 1), 0.04), torch.ones(4, 1)], -1)
+    ctrl = SharedController(policy, SharedControlConfig(max_linear_speed=None, max_angular_speed=None))
+    ctrl.reset()
+    action = ctrl.step(obs, None)
+    assert ctrl.last_diagnostics.mode == "autonomous"
+    policy.reset()
+    expected = policy.select_action({k: v[None] for k, v in obs.items()})[0]
+    torch.testing.assert_close(action, expected, atol=1e-5, rtol=1e-4)
+
+
 def test_no_input_near_the_object_surface_hands_control_to_the_user():
     prior = HandBuiltPrior()
     ctrl = SharedController(prior, SharedControlConfig(autonomy_cutoff_distance=0.07))

@@ -204,15 +204,14 @@ def surface_distance(observation: dict[str, Any]) -> torch.Tensor:
     return dist.min(-1).values if dist.shape[1] > 0 else torch.full((b,), math.inf, dtype=torch.float64)
 
 
-def most_likely_twist(mixture: TwistMixture) -> torch.Tensor:
+def most_likely_twist(prior: posterior.FactorizedTwistMixture) -> torch.Tensor:
     """The prior's most likely step-0 action ``(B, 6)``: the argmax class, the mean of its
     translation Gaussian, then the mean of its rotation Gaussian given that translation
-    (NOTES.md "Most-Likely"; the same as the policy's ``select_action``, without a second
-    pass through the encoders)."""
-    best = mixture.log_weights.argmax(-1)
-    rows = torch.arange(best.shape[0], device=best.device)
-    rot_mean, _ = mixture.rotation_given_translation(mixture.trans_mean)
-    return torch.cat([mixture.trans_mean[rows, best], rot_mean[rows, best]], -1)
+    (NOTES.md "Most-Likely"; the same as the policy's ``select_action``). ``prior`` is
+    :func:`posterior.prior_twist_mixture`, whose rotation Gaussians already sit at the
+    translation means, so no second pass through the network is needed."""
+    best = prior.log_weights.argmax(-1)
+    return prior.means[torch.arange(best.shape[0], device=best.device), best]
 
 
 class SharedController:
@@ -328,7 +327,7 @@ class SharedController:
                 mode = posterior.mixture_mode(fused, c.mode_search_starts, c.mode_search_iters, c.mode_search_tol)
                 action = torch.where(shared[:, None], mode, action)
             if autonomous.any():
-                action = torch.where(autonomous[:, None], most_likely_twist(mixture).double(), action)
+                action = torch.where(autonomous[:, None], most_likely_twist(prior), action)
             modes = ["shared" if s else "autonomous" if a else "user_only" for s, a in zip(shared.tolist(), autonomous.tolist())]
             # Diagnostics: the fused mixture where it was executed, the prior's elsewhere.
             shown = prior
