@@ -17,7 +17,8 @@ from typing import Callable
 import torch
 
 RotationGivenTranslation = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
-"""``v (B, K, 3) -> (omega (B, K, 3), Gamma (B, K, 3, 3))``."""
+"""``v (..., B, K, 3) -> (omega (..., B, K, 3), Gamma (..., B, K, 3, 3))``: leading dimensions
+hold several translations per class, evaluated in one call (the posterior needs two)."""
 
 
 @dataclass

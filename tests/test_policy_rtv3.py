@@ -385,8 +385,13 @@ def test_step0_mixture_is_a_valid_unscaled_mixture(factorized: bool):
     torch.testing.assert_close(action[:, :3], mixture.trans_mean[torch.arange(2), best], atol=1e-5, rtol=1e-4)
     torch.testing.assert_close(action[:, 3:], omega[torch.arange(2), best], atol=1e-5, rtol=1e-4)
     # The rotation depends on the translation it is conditioned on.
-    omega2, _ = mixture.rotation_given_translation(mixture.trans_mean + 0.1)
+    omega2, gamma2 = mixture.rotation_given_translation(mixture.trans_mean + 0.1)
     assert not torch.allclose(omega, omega2)
+    # Several translations per class in one call (leading dims) = one call each.
+    omega_both, gamma_both = mixture.rotation_given_translation(torch.stack([mixture.trans_mean, mixture.trans_mean + 0.1]))
+    assert omega_both.shape == (2, 2, k, 3) and gamma_both.shape == (2, 2, k, 3, 3)
+    torch.testing.assert_close(omega_both, torch.stack([omega, omega2]), atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(gamma_both, torch.stack([gamma, gamma2]), atol=1e-6, rtol=1e-5)
     with pytest.raises(ValueError, match="rotation_given_translation"):
         mixture.rotation_given_translation(mixture.trans_mean[:, 0])
 

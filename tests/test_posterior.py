@@ -26,7 +26,7 @@ def linear_rotation(weight: torch.Tensor, bias: torch.Tensor, cov: torch.Tensor)
     """omega_k(v) = W_k v + b_k, Gamma_k constant: a hand-built translation-conditioned rotation."""
 
     def fn(v: torch.Tensor):
-        omega = torch.einsum("kij,bkj->bki", weight.to(v.dtype), v) + bias.to(v.dtype)
+        omega = torch.einsum("kij,...kj->...ki", weight.to(v.dtype), v) + bias.to(v.dtype)
         return omega, cov.to(v.dtype).expand(*v.shape[:-1], 3, 3)
 
     return fn
@@ -104,6 +104,30 @@ def test_fuse_user_command_per_class_translation_then_conditioned_rotation():
     exp_omega, exp_gamma, _ = posterior.kalman_update(omega_at_fused, gamma_at_fused, user[:, None, 3:].expand(b, k, 3), g_u[:, None])
     torch.testing.assert_close(fused.rot_mean, exp_omega)
     torch.testing.assert_close(fused.rot_cov, exp_gamma)
+
+
+@pytest.mark.parametrize("reweight_at", ["prior", "fused"])
+def test_prior_and_fused_in_one_call_equal_the_separate_functions(reweight_at):
+    # The controller gets both mixtures from one rotation-head call; it must give exactly what
+    # prior_twist_mixture and fuse_user_command (with or without the prior passed in) give.
+    gen = torch.Generator().manual_seed(5)
+    b, k = 3, 4
+    rot = linear_rotation(torch.randn(k, 3, 3, generator=gen, dtype=DT), torch.randn(k, 3, generator=gen, dtype=DT) * 0.1,
+                          random_spd(gen, k)[None])
+    mixture = TwistMixture(torch.log_softmax(torch.randn(b, k, generator=gen, dtype=DT), -1),
+                           torch.randn(b, k, 3, generator=gen, dtype=DT) * 0.1, random_spd(gen, b, k), rot)
+    user = torch.randn(b, 6, generator=gen, dtype=DT) * 0.1
+    s_u, g_u = random_spd(gen, b), random_spd(gen, b)
+    observed = torch.rand(b, 6, generator=gen) > 0.3
+    prior, fused = posterior.prior_and_fused_mixtures(mixture, user, s_u, g_u, reweight_at, observed=observed)
+    expected_prior = posterior.prior_twist_mixture(mixture)
+    for expected in (posterior.fuse_user_command(mixture, user, s_u, g_u, reweight_at, observed=observed),
+                     posterior.fuse_user_command(mixture, user, s_u, g_u, reweight_at, prior=expected_prior, observed=observed)):
+        for name in ("log_weights", "trans_mean", "trans_cov", "rot_mean", "rot_cov", "trans_mahalanobis_sq",
+                     "rot_mahalanobis_sq", "trans_class_mahalanobis_sq", "rot_class_mahalanobis_sq"):
+            torch.testing.assert_close(getattr(fused, name), getattr(expected, name), msg=name)
+    for name in ("log_weights", "trans_mean", "trans_cov", "rot_mean", "rot_cov"):
+        torch.testing.assert_close(getattr(prior, name), getattr(expected_prior, name), msg=name)
 
 
 @pytest.mark.parametrize("reweight_at", ["prior", "fused"])

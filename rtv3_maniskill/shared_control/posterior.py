@@ -172,14 +172,15 @@ def _check_mixture(mixture: TwistMixture) -> tuple[int, int]:
 
 
 def _rotation_at(mixture: TwistMixture, translation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Call ``rotation_given_translation`` and validate/regularise its output (float64)."""
-    b, k = translation.shape[:2]
+    """Call ``rotation_given_translation`` at ``translation (..., B, K, 3)`` (leading dimensions:
+    several translations per class, one call) and validate/regularise its output (float64)."""
+    shape = tuple(translation.shape[:-1])
     dtype = mixture.trans_mean.dtype
     omega, gamma = mixture.rotation_given_translation(translation.to(dtype))
-    if omega.shape != (b, k, 3) or gamma.shape != (b, k, 3, 3):
+    if tuple(omega.shape) != (*shape, 3) or tuple(gamma.shape) != (*shape, 3, 3):
         raise ValueError(
-            f"rotation_given_translation must return (B, K, 3) and (B, K, 3, 3), got "
-            f"{tuple(omega.shape)} and {tuple(gamma.shape)}"
+            f"rotation_given_translation must return {(*shape, 3)} and {(*shape, 3, 3)} for translations "
+            f"{tuple(translation.shape)}, got {tuple(omega.shape)} and {tuple(gamma.shape)}"
         )
     if not (torch.isfinite(omega).all() and torch.isfinite(gamma).all()):
         raise ValueError("rotation_given_translation returned NaN or inf")
@@ -190,12 +191,16 @@ def _normalize_log_weights(log_weights: torch.Tensor) -> torch.Tensor:
     return log_weights - torch.logsumexp(log_weights, -1, keepdim=True)
 
 
-def prior_twist_mixture(mixture: TwistMixture) -> FactorizedTwistMixture:
-    """The prior step-0 mixture with each class's rotation Gaussian at its translation mean ``mu_k``."""
+def _prior_translation(mixture: TwistMixture) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Normalised class log-weights ``(B, K)``, translation means and regularised covariances (float64)."""
     _check_mixture(mixture)
     lw = _normalize_log_weights(mixture.log_weights.double())
-    mu = mixture.trans_mean.double()
-    sigma = regularize_covariance(mixture.trans_cov.double())
+    return lw, mixture.trans_mean.double(), regularize_covariance(mixture.trans_cov.double())
+
+
+def prior_twist_mixture(mixture: TwistMixture) -> FactorizedTwistMixture:
+    """The prior step-0 mixture with each class's rotation Gaussian at its translation mean ``mu_k``."""
+    lw, mu, sigma = _prior_translation(mixture)
     omega, gamma = _rotation_at(mixture, mu)
     return FactorizedTwistMixture(lw, mu, sigma, omega, gamma, lw.clone())
 
@@ -228,7 +233,38 @@ def fuse_user_command(
     Returns:
         The fused mixture; ``log_weights`` are ``log pi_k'``.
     """
-    b, k = _check_mixture(mixture) if prior is None else tuple(prior.log_weights.shape)  # prior: checked there
+    return _prior_and_fused(mixture, user_twist, user_trans_cov, user_rot_cov, reweight_rotation_at, prior, observed)[1]
+
+
+def prior_and_fused_mixtures(
+    mixture: TwistMixture,
+    user_twist: torch.Tensor,
+    user_trans_cov: torch.Tensor,
+    user_rot_cov: torch.Tensor,
+    reweight_rotation_at: str = "prior",
+    observed: torch.Tensor | None = None,
+) -> tuple[FactorizedTwistMixture, FactorizedTwistMixture]:
+    """``(prior_twist_mixture(mixture), fuse_user_command(mixture, ...))`` with the rotation Gaussians
+    at the prior means ``mu_k`` and at the fused means ``mu_k'`` from one call of
+    ``rotation_given_translation`` (one pass through the network's rotation head per step)."""
+    return _prior_and_fused(mixture, user_twist, user_trans_cov, user_rot_cov, reweight_rotation_at, None, observed)
+
+
+def _prior_and_fused(
+    mixture: TwistMixture,
+    user_twist: torch.Tensor,
+    user_trans_cov: torch.Tensor,
+    user_rot_cov: torch.Tensor,
+    reweight_rotation_at: str,
+    prior: FactorizedTwistMixture | None,
+    observed: torch.Tensor | None,
+) -> tuple[FactorizedTwistMixture, FactorizedTwistMixture]:
+    """See :func:`fuse_user_command`; also returns the prior mixture (``prior`` if given)."""
+    if prior is not None:  # already checked, normalised and regularised by prior_twist_mixture
+        prior_lw, mu, sigma = prior.prior_log_weights, prior.trans_mean, prior.trans_cov
+    else:
+        prior_lw, mu, sigma = _prior_translation(mixture)
+    b, k = prior_lw.shape
     if reweight_rotation_at not in ("prior", "fused"):
         raise ValueError(f"reweight_rotation_at must be 'prior' or 'fused', got {reweight_rotation_at!r}")
     user = user_twist.double()
@@ -252,28 +288,23 @@ def fuse_user_command(
     v_u = user[:, None, :3].expand(b, k, 3)
     w_u = user[:, None, 3:].expand(b, k, 3)
 
-    if prior is not None:  # already normalised / regularised by prior_twist_mixture
-        prior_lw, mu, sigma = prior.prior_log_weights, prior.trans_mean, prior.trans_cov
-    else:
-        prior_lw = _normalize_log_weights(mixture.log_weights.double())
-        mu = mixture.trans_mean.double()
-        sigma = regularize_covariance(mixture.trans_cov.double())
-
     # Translation: Kalman fusion per class (Eq. K_v).
     mu_f, sigma_f, _ = kalman_update(mu, sigma, v_u, s_u)
-    # Rotation conditioned on the fused translation, then fused with w_u (Eq. K_w).
-    omega_f, gamma_f = _rotation_at(mixture, mu_f)
+    # Rotation conditioned on the fused translation (Eq. rotgmm at mu_k'), with the prior's at mu_k
+    # in the same call when the prior mixture is not given.
+    if prior is None:
+        omega, gamma = _rotation_at(mixture, torch.stack([mu, mu_f]))
+        prior = FactorizedTwistMixture(prior_lw, mu, sigma, omega[0], gamma[0], prior_lw.clone())
+        omega_f, gamma_f = omega[1], gamma[1]
+    else:
+        omega_f, gamma_f = _rotation_at(mixture, mu_f)
+    # ... then fused with w_u (Eq. K_w).
     omega_post, gamma_post = kalman_update(omega_f, gamma_f, w_u, g_u)[:2]
 
     # Class re-weighting (Eq. p(z | h_0, a_0^u)), in log space.
     # Sums of two regularised SPD matrices are SPD: no second eigen-decomposition needed.
     log_lik_v, trans_maha = gaussian_log_prob_and_mahalanobis_sq(v_u, mu, sigma + s_u)
-    if reweight_rotation_at == "prior" and prior is not None:
-        omega_r, gamma_r = prior.rot_mean, prior.rot_cov
-    elif reweight_rotation_at == "prior":
-        omega_r, gamma_r = _rotation_at(mixture, mu)
-    else:
-        omega_r, gamma_r = omega_f, gamma_f
+    omega_r, gamma_r = (prior.rot_mean, prior.rot_cov) if reweight_rotation_at == "prior" else (omega_f, gamma_f)
     log_lik_w, rot_maha = gaussian_log_prob_and_mahalanobis_sq(w_u, omega_r, gamma_r + g_u)
     post_lw = prior_lw + log_lik_v + log_lik_w
     post_lw = torch.where(torch.isnan(post_lw), torch.full_like(post_lw, -math.inf), post_lw)
@@ -281,7 +312,7 @@ def fuse_user_command(
     post_lw = torch.where(no_support, prior_lw, post_lw)  # every class -inf: keep the prior
     post_lw = _normalize_log_weights(post_lw)
 
-    return FactorizedTwistMixture(
+    return prior, FactorizedTwistMixture(
         log_weights=post_lw,
         trans_mean=mu_f,
         trans_cov=sigma_f,

@@ -308,14 +308,15 @@ class SharedController:
             mixture = self.policy.predict_step0_mixture(observation)
             if mixture.log_weights.shape[0] != b:
                 raise ValueError(f"policy returned a mixture of batch {mixture.log_weights.shape[0]}, expected {b}")
-            prior = posterior.prior_twist_mixture(mixture)
             fused = None
             fired = torch.zeros(b, dtype=torch.bool)
             if (active & ~no_grasps).any():
                 observed = (user.abs() > c.input_threshold) if c.uncommanded_axes == "missing" else None
-                fused = posterior.fuse_user_command(
-                    mixture, user, s_u, g_u, c.reweight_rotation_at, prior=prior, observed=observed)
+                prior, fused = posterior.prior_and_fused_mixtures(
+                    mixture, user, s_u, g_u, c.reweight_rotation_at, observed=observed)
                 fired = active & posterior.is_out_of_distribution(fused, c.ood_alpha, c.ood_covariance, c.ood_dofs) & ~no_grasps
+            else:
+                prior = posterior.prior_twist_mixture(mixture)
             self._ood_remaining = torch.where(fired, torch.full_like(self._ood_remaining, c.ood_steps), self._ood_remaining)
             ood = (in_window | fired) & ~no_grasps
             shared = active & ~ood & ~no_grasps

@@ -9,6 +9,7 @@ positions by ``position_scale``; every public method here takes and returns SI u
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -242,10 +243,12 @@ class RTV3Model(nn.Module):
             trans_mean, trans_cov = trans.mean, trans.covariance()
 
             def rotation_given_translation(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-                _check_translation(v, batch, k)
+                lead = _check_translation(v, batch, k)
+                n = math.prod(lead)  # translations per (sample, class), evaluated in one pass
                 with torch.no_grad():
-                    rot = decoder.rotation(h, z, v.reshape(batch * k, 3).to(h) * scale)
-                    return rot.mean.view(batch, k, 3), rot.covariance().view(batch, k, 3, 3)
+                    rot = decoder.rotation(h.repeat(n, 1) if n > 1 else h, z.repeat(n, 1) if n > 1 else z,
+                                           v.reshape(n * batch * k, 3).to(h) * scale)
+                    return rot.mean.view(*lead, batch, k, 3), rot.covariance().view(*lead, batch, k, 3, 3)
         else:
             joint = decoder.joint(h, z)
             unscale = torch.tensor([1.0 / scale] * 3 + [1.0] * 3, dtype=h.dtype, device=h.device)
@@ -253,10 +256,10 @@ class RTV3Model(nn.Module):
             trans_mean, _, trans_cov, _ = joint.split()
 
             def rotation_given_translation(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-                _check_translation(v, batch, k)
+                lead = _check_translation(v, batch, k)
                 with torch.no_grad():
-                    omega, gamma = joint.rotation_given_translation(v.reshape(batch * k, 3).to(h))
-                    return omega.view(batch, k, 3), gamma.view(batch, k, 3, 3)
+                    omega, gamma = joint.rotation_given_translation(v.reshape(*lead, batch * k, 3).to(h))
+                    return omega.view(*lead, batch, k, 3), gamma.expand(*lead, batch * k, 3, 3).reshape(*lead, batch, k, 3, 3)
 
         return TwistMixture(
             log_weights=self.maneuver_log_prior(enc, step),
@@ -266,12 +269,14 @@ class RTV3Model(nn.Module):
         )
 
 
-def _check_translation(v: torch.Tensor, batch: int, k: int) -> None:
-    if not isinstance(v, torch.Tensor) or tuple(v.shape) != (batch, k, 3):
+def _check_translation(v: torch.Tensor, batch: int, k: int) -> tuple[int, ...]:
+    """Validate ``v (..., B, K, 3)``; returns its leading shape ``...``."""
+    if not isinstance(v, torch.Tensor) or v.ndim < 3 or tuple(v.shape[-3:]) != (batch, k, 3):
         got = tuple(v.shape) if isinstance(v, torch.Tensor) else type(v).__name__
-        raise ValueError(f"rotation_given_translation expects v of shape ({batch}, {k}, 3), got {got}")
+        raise ValueError(f"rotation_given_translation expects v of shape (..., {batch}, {k}, 3), got {got}")
     if not bool(torch.isfinite(v).all()):
         raise ValueError("rotation_given_translation: v contains NaN or inf")
+    return tuple(v.shape[:-3])
 
 
 __all__ = ["RTV3Model", "Encoding"]
