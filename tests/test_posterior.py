@@ -375,6 +375,27 @@ def test_user_covariance_follows_command_spread_but_not_below_floor():
     torch.testing.assert_close(est.trans_cov[1], 0.03 * torch.eye(3, dtype=DT))
 
 
+def test_user_covariance_of_a_batch_equals_each_element_alone():
+    # Elements command at different times (some steps inactive) and with different spreads; the
+    # batched update must give every element exactly what it would get on its own.
+    rng = np.random.default_rng(11)
+    b, steps = 4, 40
+    commands = torch.from_numpy(rng.normal(0.0, 1.0, (steps, b, 6)) * np.array([0.3, 0.05, 0.01, 0.02])[:, None])
+    active = torch.from_numpy(rng.random((steps, b)) < np.array([1.0, 0.7, 0.4, 0.1]))
+    batched = posterior.UserCovarianceEstimator(batch_size=b)
+    alone = [posterior.UserCovarianceEstimator(batch_size=1) for _ in range(b)]
+    for t in range(steps):
+        batched.update(commands[t], active[t])
+        for i in range(b):
+            alone[i].update(commands[t, i : i + 1], active[t, i : i + 1])
+    for i in range(b):
+        torch.testing.assert_close(batched.trans_cov[i], alone[i].trans_cov[0], rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(batched.rot_cov[i], alone[i].rot_cov[0], rtol=1e-12, atol=1e-14)
+        assert int(batched.num_samples[i]) == int(alone[i].num_samples[0])
+    # the spreads differ, so the elements' covariances do too (the test is not vacuous)
+    assert not torch.allclose(batched.trans_cov[0], batched.trans_cov[2])
+
+
 # --------------------------------------------------------------------------- shared controller
 
 
