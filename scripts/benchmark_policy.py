@@ -4,7 +4,7 @@ Usage: ``python scripts/benchmark_policy.py [--threads 2] [--steps 200] [--repea
 
 Inputs are synthetic but shaped like the dataset (N = 2048 points, M = 64 grasps, T = 8, H = 12).
 ``select_action`` is timed ``--repeats`` times ``--steps`` calls; the result is the median of the
-repeats' medians (a shared VM drifts by 10-20 % from minute to minute), each repeat is printed.
+repeats' medians (a shared VM drifts by 20-50 % from minute to minute), each repeat is printed.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ controller call is timed, per mode the step ran in (``shared``, ``autonomous``, 
 every mode runs the prior) and over ``all`` steps. Without a checkpoint an untrained ``RTV3Policy(RTV3Config())`` of the same size is used
 (latency does not depend on the weights). The timed loop runs ``--repeats`` times (the same
 scene and user each time); the table pools every step, and the last line gives each repeat's
-median (on a shared VM they drift by 10-20 % from minute to minute) and the median of them.
+median (on a shared VM they drift by 20-50 % from minute to minute) and the median of them.
 """
 
 from __future__ import annotations

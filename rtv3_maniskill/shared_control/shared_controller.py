@@ -3,7 +3,8 @@
 Per step and batch element, one of three modes (``SharedControlDiagnostics.modes``):
 
 * ``"shared"``: a user command arrived and is in distribution -> fuse it with the
-  prior's step-0 mixture (:func:`posterior.fuse_user_command`) and execute the mode of
+  prior's step-0 mixture (:func:`posterior.prior_and_fused_mixtures`, which also gives the prior
+  mixture, :func:`posterior.fuse_user_command` alone) and execute the mode of
   the fused mixture (:func:`posterior.mixture_mode`). The zero axes of a command are, by
   default (``uncommanded_axes="missing"``), axes the device does not give: they are not
   fused, so the prior fills them in (a mode-switching or single-axis user).
