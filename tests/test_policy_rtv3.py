@@ -16,7 +16,12 @@ from rtv3_maniskill import features as ft
 from rtv3_maniskill import se3
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
-from rtv3_maniskill.policies.rtv3.point_encoder import PointTransformerEncoder, _spread_bits, morton_code
+from rtv3_maniskill.policies.rtv3.point_encoder import (
+    GridPooling,
+    PointTransformerEncoder,
+    _spread_bits,
+    morton_code,
+)
 from rtv3_maniskill.twist_mixture import TwistMixture
 
 SMALL = dict(num_points=256, max_grasps=16)
@@ -197,6 +202,30 @@ def test_morton_code_interleaves_bits():
     grid = torch.tensor([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]])
     assert morton_code(grid).tolist() == [1, 2, 4, 7]
     assert morton_code(grid, "z-trans").tolist() == [2, 1, 4, 7]
+
+
+def test_grid_pooling_of_a_z_ordered_list_needs_no_sort():
+    # A list serialised along z is pooled without sorting (halving the grid drops the low bits of
+    # the code); that must equal pooling the same list as if its order were unknown, and the
+    # pooled list must come out sorted along z of the coarse grid, as the next stage assumes.
+    torch.manual_seed(0)
+    enc = PointTransformerEncoder(6, (8, 8), (2, 2), (1, 1), patch_size=16, grid_size=0.01, position_scale=1.0)
+    xyz, feat = torch.rand(3, 300, 3) * 0.3, torch.rand(3, 300, 6)
+    mask = torch.rand(3, 300) > 0.2
+    pts = enc.flatten(xyz, feat, mask).with_feat(torch.rand(int(mask.sum()), 8))
+    z_sorted = pts.serialize("z")
+    assert z_sorted.order == "z" and z_sorted.serialize("z") is z_sorted
+    pool = GridPooling(8, 8)
+    with torch.no_grad():
+        fast = pool(z_sorted)
+        shuffled = z_sorted.permute(torch.randperm(pts.feat.shape[0]), None)  # same points, order unknown
+        slow = pool(shuffled)
+        transposed = pool(z_sorted.serialize("z-trans"))  # sorted along the other curve: must sort
+    for other in (slow, transposed):
+        for a, b in ((fast.feat, other.feat), (fast.xyz, other.xyz), (fast.grid, other.grid), (fast.batch, other.batch)):
+            torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-6)
+    key = (fast.batch << 48) | morton_code(fast.grid, "z")
+    assert fast.order == "z" and bool((key[1:] > key[:-1]).all())  # one point per voxel, z-sorted
 
 
 def test_point_encoder_sample_alone_equals_sample_in_a_batch():

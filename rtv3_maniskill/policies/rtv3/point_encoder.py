@@ -74,6 +74,8 @@ class FlatPoints:
         grid: ``(L, 3)`` int64 voxel coordinates at the current stage's grid size.
         batch: ``(L,)`` int64 sample index, non-decreasing.
         batch_size: B.
+        order: the curve the list is sorted along within each sample (``"z"``, ``"z-trans"``),
+            None if unknown.
     """
 
     feat: torch.Tensor
@@ -81,14 +83,24 @@ class FlatPoints:
     grid: torch.Tensor
     batch: torch.Tensor
     batch_size: int
+    order: str | None = None
 
-    def permute(self, order: torch.Tensor) -> "FlatPoints":
-        return FlatPoints(self.feat[order], self.xyz[order], self.grid[order], self.batch[order], self.batch_size)
+    def with_feat(self, feat: torch.Tensor) -> "FlatPoints":
+        """The same points with new features ``(L, C')``."""
+        return FlatPoints(feat, self.xyz, self.grid, self.batch, self.batch_size, self.order)
+
+    def permute(self, index: torch.Tensor, order: str | None) -> "FlatPoints":
+        return FlatPoints(self.feat[index], self.xyz[index], self.grid[index], self.batch[index], self.batch_size, order)
 
     def serialize(self, order: str) -> "FlatPoints":
-        """Sort along the space-filling curve within each sample (stable, so ties keep input order)."""
+        """Sort along the space-filling curve within each sample (stable, so ties keep input order).
+
+        A list already sorted along ``order`` is returned as is (the stable sort would be the identity).
+        """
+        if order == self.order:
+            return self
         key = (self.batch << _BATCH_SHIFT) | morton_code(self.grid, order)
-        return self.permute(torch.sort(key, stable=True).indices)
+        return self.permute(torch.sort(key, stable=True).indices, order)
 
 
 def _patch_layout(batch: torch.Tensor, batch_size: int, patch_size: int) -> tuple[torch.Tensor, int]:
@@ -168,19 +180,23 @@ class GridPooling(nn.Module):
     def forward(self, pts: FlatPoints) -> FlatPoints:
         feat = self.proj(pts.feat)
         if pts.feat.shape[0] == 0:
-            return FlatPoints(feat, pts.xyz, pts.grid, pts.batch, pts.batch_size)
+            return pts.with_feat(feat)
         coarse = torch.div(pts.grid, 2, rounding_mode="floor")
         key = (pts.batch << _BATCH_SHIFT) | morton_code(coarse, "z")
-        key, order = torch.sort(key, stable=True)
+        xyz_in = pts.xyz
+        if pts.order != "z":
+            key, order = torch.sort(key, stable=True)
+            feat, xyz_in, coarse = feat[order], xyz_in[order], coarse[order]
+        # else: halving every axis drops the lowest 3 bits of the z-order code, so a list sorted
+        # along the fine z-order is already sorted by the coarse key (the stable sort is the identity).
         unique_keys, inverse = torch.unique_consecutive(key, return_inverse=True)
         n, dim = unique_keys.shape[0], feat.shape[1]
-        pooled = feat.new_zeros(n, dim).scatter_reduce(
-            0, inverse[:, None].expand(-1, dim), feat[order], "amax", include_self=False
-        )
+        pooled = feat.new_zeros(n, dim).scatter_reduce(0, inverse[:, None].expand(-1, dim), feat, "amax", include_self=False)
         counts = torch.bincount(inverse, minlength=n).to(pts.xyz.dtype)
-        xyz = pts.xyz.new_zeros(n, 3).index_add_(0, inverse, pts.xyz[order]) / counts[:, None]
-        grid = coarse.new_zeros(n, 3).scatter_(0, inverse[:, None].expand(-1, 3), coarse[order])
-        return FlatPoints(pooled, xyz, grid, unique_keys >> _BATCH_SHIFT, pts.batch_size)
+        xyz = pts.xyz.new_zeros(n, 3).index_add_(0, inverse, xyz_in) / counts[:, None]
+        grid = coarse.new_zeros(n, 3).scatter_(0, inverse[:, None].expand(-1, 3), coarse)
+        # One point per coarse voxel, sorted by (sample, z-order of the coarse grid).
+        return FlatPoints(pooled, xyz, grid, unique_keys >> _BATCH_SHIFT, pts.batch_size, "z")
 
 
 class PointTransformerEncoder(nn.Module):
@@ -240,13 +256,13 @@ class PointTransformerEncoder(nn.Module):
             tokens ``(B, L, C)`` of the pooled points and their mask ``(B, L)`` bool (True = real).
         """
         pts = self.flatten(xyz, feat, mask)
-        pts = FlatPoints(self.embed(pts.feat), pts.xyz, pts.grid, pts.batch, pts.batch_size)
+        pts = pts.with_feat(self.embed(pts.feat))
         for i, blocks in enumerate(self.stages):
             if i > 0:
                 pts = self.pools[i - 1](pts)
-            pts = pts.serialize(self.orders[i])
+            pts = pts.serialize(self.orders[i])  # a no-op where the pooling left the list in this order
             for block in blocks:
-                pts = FlatPoints(block(pts), pts.xyz, pts.grid, pts.batch, pts.batch_size)
+                pts = pts.with_feat(block(pts))
         return self._pad(pts)
 
     @staticmethod
