@@ -64,6 +64,12 @@ _ORDER_SHIFTS = {"z": torch.tensor([0, 1, 2]), "z-trans": torch.tensor([1, 0, 2]
 """Bit offset of x, y, z in the interleaved code (z-trans swaps x and y)."""
 
 
+def serial_key(batch: torch.Tensor, grid: torch.Tensor, order: str) -> torch.Tensor:
+    """Sort key ``(L,)`` int64 of flat points: sample index ``batch (L,)`` in the high bits, the
+    ``order`` curve's code of ``grid (L, 3)`` below, so sorting it serialises each sample."""
+    return (batch << _BATCH_SHIFT) | morton_code(grid, order)
+
+
 @dataclass
 class FlatPoints:
     """A batch of point sets as one list, sorted so that each sample's points are contiguous.
@@ -99,7 +105,7 @@ class FlatPoints:
         """
         if order == self.order:
             return self
-        key = (self.batch << _BATCH_SHIFT) | morton_code(self.grid, order)
+        key = serial_key(self.batch, self.grid, order)
         return self.permute(torch.sort(key, stable=True).indices, order)
 
 
@@ -182,7 +188,7 @@ class GridPooling(nn.Module):
         if pts.feat.shape[0] == 0:
             return pts.with_feat(feat)
         coarse = torch.div(pts.grid, 2, rounding_mode="floor")
-        key = (pts.batch << _BATCH_SHIFT) | morton_code(coarse, "z")
+        key = serial_key(pts.batch, coarse, "z")
         xyz_in = pts.xyz
         if pts.order != "z":
             key, order = torch.sort(key, stable=True)
