@@ -12,9 +12,17 @@ import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
 from rtv3_maniskill.shared_control import make_user
-from rtv3_maniskill.shared_control.benchmark import BenchmarkConfig, BenchmarkError, _check_config, run_benchmark
+from rtv3_maniskill.shared_control.benchmark import (
+    BenchmarkConfig,
+    BenchmarkError,
+    _check_config,
+    run_benchmark,
+    summarize,
+    summary_markdown,
+)
 from rtv3_maniskill.shared_control.env_wrapper import (
     DirectAssistance,
+    EpisodeResult,
     RTV3Assistance,
     SharedControlEnv,
     load_rtv3_policy,
@@ -22,6 +30,7 @@ from rtv3_maniskill.shared_control.env_wrapper import (
     run_episode,
 )
 from rtv3_maniskill.shared_control.shared_controller import MODES
+from rtv3_maniskill.shared_control.simulated_users import IdealUser
 
 N_POINTS = 512
 MAX_LINEAR, MAX_ANGULAR = 0.3, 1.2  # the pd_ee_twist controller's limits
@@ -150,6 +159,52 @@ def test_run_episode_ideal_user_direct_reaches_the_pregrasp(env):
     np.testing.assert_allclose(again.trajectory, result.trajectory, atol=1e-5)
 
 
+class DivingUser(IdealUser):
+    """An ideal user whose goal is the pre-grasp's orientation 30 cm below the table: it drives into the scene."""
+
+    def reset(self, goal_pose):
+        goal = torch.as_tensor(goal_pose, dtype=torch.float64).clone()
+        goal[2, 3] = -0.3
+        super().reset(goal)
+
+
+def test_run_episode_can_end_a_trial_at_the_first_contact(env):
+    options = dict(target_grasp_index=0)
+    going_on = run_episode(env, DirectAssistance(), DivingUser(), max_steps=60, seed=5, options=options)
+    contacts = [d["collision"] for d in going_on.diagnostics]
+    assert any(contacts) and going_on.collision and going_on.outcome == "collision"
+    first = contacts.index(True) + 1  # steps up to and including the first contact
+    assert going_on.steps == 60 > first
+
+    stopped = run_episode(env, DirectAssistance(), DivingUser(), max_steps=60, seed=5, options=options,
+                          stop_on_contact=True)
+    assert stopped.steps == first and stopped.outcome == "collision" and not stopped.success
+    assert [d["collision"] for d in stopped.diagnostics] == [False] * (first - 1) + [True]
+    # Identical up to the contact (the contact step itself is solved with contact state left by the
+    # previous episode, so it may differ by a fraction of a millimetre).
+    np.testing.assert_allclose(stopped.trajectory[:first], going_on.trajectory[:first], atol=1e-5)
+    np.testing.assert_allclose(stopped.trajectory[first], going_on.trajectory[first], atol=2e-3)
+
+
+@pytest.mark.parametrize("success, collision, outcome", [
+    (True, False, "success"), (True, True, "collision"), (False, True, "collision"), (False, False, "timeout"),
+])
+def test_a_contact_fails_the_trial_even_where_the_pregrasp_was_reached(success, collision, outcome):
+    result = EpisodeResult(success=success, collision=collision, steps=10, trajectory=np.zeros((11, 4, 4)),
+                           diagnostics=[])
+    assert result.outcome == outcome
+
+
+def test_summary_outcomes_add_up_to_the_trials():
+    rows = [dict(user="noisy", method="direct", outcome=o, success=r, collision=c, steps=n)
+            for o, r, c, n in [("success", 1, 0, 40), ("success", 1, 0, 60), ("collision", 1, 1, 30),
+                               ("collision", 0, 1, 12), ("timeout", 0, 0, 150)]]
+    (s,) = summarize(rows)
+    assert (s["trials"], s["SR"], s["CR"], s["TOR"], s["reached"]) == (5, 40.0, 40.0, 20.0, 60.0)
+    assert s["mean_iterations"] == 50.0  # successful trials only
+    assert "| noisy | Direct | 5 | 40.0 | 40.0 | 20.0 | 60.0 | 50.0 |" in summary_markdown([s])
+
+
 def _rows(path):
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
@@ -161,6 +216,7 @@ def test_benchmark_writes_results_and_resumes_without_duplicates(tmp_path):
     summary = run_benchmark(config, progress=False)
     rows = _rows(tmp_path / "results.csv")
     assert [r["method"] for r in rows] == ["direct", "ho"]
+    assert all(r["outcome"] in ("success", "collision", "timeout") for r in rows)
     assert len({(r["scene_seed"], r["grasp_index"], r["user"], r["method"]) for r in rows}) == 2
     assert [(s["user"], s["method"], s["trials"]) for s in summary] == [("noisy", "direct", 1), ("noisy", "ho", 1)]
     for name in ("summary.csv", "summary.md", "success_rates.png"):

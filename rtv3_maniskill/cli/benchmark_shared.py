@@ -30,6 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-grasps-per-scene", type=int, default=None,
                         help="cap on goal grasps per scene (seeded random subset; default: every valid grasp)")
     parser.add_argument("--max-steps", type=int, default=150, help="control steps per trial (20 Hz)")
+    parser.add_argument("--continue-after-contact", action="store_true",
+                        help="let a trial go on after a robot contact (still counted as a collision) instead of "
+                             "ending it there as a failure (the paper's protocol, the default)")
     parser.add_argument("--obs-mode", default="state_dict", choices=["state_dict", "pointcloud"],
                         help="state_dict: mesh-sampled scene cloud; pointcloud: depth camera rendered every step")
     parser.add_argument("--mesh-context", action="store_true",
@@ -57,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
         config = BenchmarkConfig(
             output=args.output, policy_path=args.policy_path, scenes=args.scenes, users=users, methods=methods,
             seed=args.seed, max_grasps_per_scene=args.max_grasps_per_scene, max_steps=args.max_steps,
+            stop_on_contact=not args.continue_after_contact,
             obs_mode=args.obs_mode, rendered_context=not args.mesh_context, scene_type=args.scene_type,
             ho_variant=args.ho_variant, shared_control={
                 key: value for key in ("ood_covariance", "ood_dofs", "uncommanded_axes")

@@ -2,11 +2,14 @@
 
 Every valid grasp candidate of every scene is a goal (optionally a seeded random subset of
 ``max_grasps_per_scene`` per scene); each simulated user drives towards the goal's pre-grasp
-with each assistance method for up to 150 steps (7.5 s). Per trial: success = the env's
-``info["success"]`` (pose distance to the pre-grasp < 0.1, shared-control weights, either
-parallel-jaw twin), collision = any robot contact during the trial (NOTES.md). Reported per
-(user, method): SR, CR, mean iterations of the successful trials, and the clean SR (success
-without any contact).
+with each assistance method for up to 150 steps (7.5 s). As in the paper's planning and
+shared-control tables (their SR + CR + TOR add up to 100 %), each trial has one outcome: it
+ends as a *collision* at the first robot contact, as a *success* when the env's
+``info["success"]`` comes first (pose distance to the pre-grasp < 0.1, shared-control
+weights, either parallel-jaw twin), and as a *timeout* after the step limit. Reported per
+(user, method): SR, CR, TOR, mean iterations of the successful trials, and "reached" (the
+pre-grasp reached whether or not the robot touched something, which differs from SR only when
+``stop_on_contact=False`` lets trials go on after a contact).
 
 Outputs in ``output``: ``results.csv`` (one row per trial, appended and flushed as trials
 finish; a rerun skips the finished (scene, grasp, user, method) rows), ``summary.csv``,
@@ -34,10 +37,10 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 RESULT_FIELDS = (
-    "scene_seed", "grasp_index", "user", "method", "success", "collision", "steps",
+    "scene_seed", "grasp_index", "user", "method", "outcome", "success", "collision", "steps",
     "final_distance", "autonomous_steps", "user_only_steps", "user_seed", "wall_time_s",
 )
-SUMMARY_FIELDS = ("user", "method", "trials", "SR", "CR", "clean_SR", "mean_iterations")
+SUMMARY_FIELDS = ("user", "method", "trials", "SR", "CR", "TOR", "reached", "mean_iterations")
 DEFAULT_USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
 DEFAULT_METHODS = ("direct", "ho", "rtv3")
 METHOD_LABELS = {"direct": "Direct", "ho": "HO", "rtv3": "RT-V3"}
@@ -63,6 +66,9 @@ class BenchmarkConfig:
     seed: int = 9
     max_grasps_per_scene: int | None = None
     max_steps: int = 150
+    stop_on_contact: bool = True
+    """End a trial at the first robot contact, a failure (the paper's protocol); False lets it go on
+    (the contact still counts as a collision, and "reached" says whether the pre-grasp was reached)."""
     obs_mode: str = "state_dict"
     rendered_context: bool = False
     scene_type: str = "mixed"
@@ -135,7 +141,7 @@ class BenchmarkConfig:
         is identified by its path *and* the SHA-256 of its weights, so a checkpoint replaced in
         place is not mixed with results of the old one."""
         return dict(
-            seed=self.seed, max_steps=self.max_steps, obs_mode=self.obs_mode, rendered_context=self.rendered_context,
+            seed=self.seed, max_steps=self.max_steps, stop_on_contact=self.stop_on_contact, obs_mode=self.obs_mode, rendered_context=self.rendered_context,
             scene_type=self.scene_type, ho_variant=self.ho_variant, max_grasps_per_scene=self.max_grasps_per_scene,
             policy_path=str(policy_path.resolve()) if policy_path is not None else None,
             policy_weights_sha256=weights_digest(policy_path) if policy_path is not None else None,
@@ -231,9 +237,9 @@ def read_results(path: Path) -> list[dict[str, Any]]:
 
 def summarize(rows: Iterable[dict[str, Any]], users: Sequence[str] | None = None,
               methods: Sequence[str] | None = None) -> list[dict[str, Any]]:
-    """Per (user, method): trials, SR %, CR %, clean SR % (success without contact), mean
-    iterations of successful trials (NaN if none). Every row counts; ``users`` / ``methods`` only
-    set the order (names not listed follow, sorted)."""
+    """Per (user, method): trials, SR / CR / TOR % (exclusive outcomes, they add up to 100), reached %
+    (pre-grasp reached, contact or not), mean iterations of the successful trials (NaN if none).
+    Every row counts; ``users`` / ``methods`` only set the order (names not listed follow, sorted)."""
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for row in rows:
         groups.setdefault((row["user"], row["method"]), []).append(row)
@@ -246,12 +252,14 @@ def summarize(rows: Iterable[dict[str, Any]], users: Sequence[str] | None = None
             if not trials:
                 continue
             n = len(trials)
-            wins = [t for t in trials if int(t["success"])]
+            outcomes = [t["outcome"] for t in trials]
+            wins = [t for t in trials if t["outcome"] == "success"]
             out.append(dict(
                 user=u, method=m, trials=n,
-                SR=100.0 * len(wins) / n,
-                CR=100.0 * sum(int(t["collision"]) for t in trials) / n,
-                clean_SR=100.0 * sum(1 for t in wins if not int(t["collision"])) / n,
+                SR=100.0 * outcomes.count("success") / n,
+                CR=100.0 * outcomes.count("collision") / n,
+                TOR=100.0 * outcomes.count("timeout") / n,
+                reached=100.0 * sum(int(t["success"]) for t in trials) / n,
                 mean_iterations=float(np.mean([int(t["steps"]) for t in wins])) if wins else math.nan,
             ))
     return out
@@ -264,18 +272,19 @@ def _fmt(value: float, digits: int = 1) -> str:
 def summary_markdown(summary: Sequence[dict[str, Any]]) -> str:
     """Markdown table: one row per (user, method)."""
     lines = [
-        "| User | Method | Trials | SR % (↑) | CR % (↓) | clean SR % (↑) | Iter (↓) |",
-        "|---|---|---:|---:|---:|---:|---:|",
+        "| User | Method | Trials | SR % (↑) | CR % (↓) | TOR % (↓) | reached % | Iter (↓) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
     ]
     for s in summary:
         lines.append(
             f"| {s['user']} | {METHOD_LABELS.get(s['method'], s['method'])} | {s['trials']} | {_fmt(s['SR'])} | "
-            f"{_fmt(s['CR'])} | {_fmt(s['clean_SR'])} | {_fmt(s['mean_iterations'])} |"
+            f"{_fmt(s['CR'])} | {_fmt(s['TOR'])} | {_fmt(s['reached'])} | {_fmt(s['mean_iterations'])} |"
         )
     notes = (
-        "\nSR: reached the target pre-grasp (pose distance < 0.1) within the step limit; CR: any robot "
-        "contact during the trial; clean SR: success without contact; Iter: mean control steps (20 Hz) of "
-        "the successful trials.\n"
+        "\nOne outcome per trial: CR = a robot contact came first (the trial fails), SR = the target "
+        "pre-grasp was reached first (pose distance < 0.1), TOR = neither within the step limit; reached: "
+        "the pre-grasp was reached with or without a contact; Iter: mean control steps (20 Hz) of the "
+        "successful trials.\n"
     )
     return "\n".join(lines) + "\n" + notes
 
@@ -397,17 +406,17 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
                         start = time.perf_counter()
                         result = run_episode(
                             env, method, make_user(user_name, u_seed), max_steps=config.max_steps,
-                            seed=scene_seed, options=dict(target_grasp_index=g),
+                            seed=scene_seed, options=dict(target_grasp_index=g), stop_on_contact=config.stop_on_contact,
                         )
                         counts = result.mode_counts
                         results.append(dict(
                             scene_seed=scene_seed, grasp_index=g, user=user_name, method=method_name,
-                            success=int(result.success), collision=int(result.collision), steps=result.steps,
+                            outcome=result.outcome, success=int(result.success), collision=int(result.collision), steps=result.steps,
                             final_distance=f"{result.final_distance:.4f}",
                             autonomous_steps=counts.get("autonomous", 0), user_only_steps=counts.get("user_only", 0),
                             user_seed=u_seed, wall_time_s=f"{time.perf_counter() - start:.2f}",
                         ))
-                        wins[method_name].append(int(result.success))
+                        wins[method_name].append(int(result.outcome == "success"))
                         bar.set_postfix({METHOD_LABELS.get(m, m): f"{100 * np.mean(v):.0f}%" for m, v in wins.items() if v})
                         bar.update(1)
     finally:

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import se3
+from rtv3_maniskill.evaluation.planning import trial_outcome
 from rtv3_maniskill.features import observation_from_env
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
 from rtv3_maniskill.shared_control.hindsight_optimization import VARIANTS as HO_VARIANTS
@@ -383,7 +384,8 @@ class EpisodeResult:
     Attributes:
         success: the env's ``info["success"]`` was reached (pre-grasp within the pose-distance threshold).
         collision: any robot contact at any step.
-        steps: control steps taken (stops at success or ``max_steps``).
+        steps: control steps taken (stops at success, at ``max_steps`` or, with ``stop_on_contact``, at
+            the first contact).
         trajectory: ``(steps + 1, 4, 4)`` TCP poses (world), the start included.
         diagnostics: per step the method's diagnostics plus ``user_twist``, ``robot_twist`` (6,),
             ``pregrasp_distance`` and ``collision``.
@@ -402,6 +404,12 @@ class EpisodeResult:
     wall_time: float = 0.0
 
     @property
+    def outcome(self) -> str:
+        """``"collision"`` (any contact, even if the pre-grasp was reached), else ``"success"`` or
+        ``"timeout"``: the paper's exclusive outcomes (SR + CR + TOR = 100 %)."""
+        return trial_outcome(collision=self.collision, success=self.success) or "timeout"
+
+    @property
     def mode_counts(self) -> dict[str, int]:
         """Steps per assistance mode."""
         counts: dict[str, int] = {}
@@ -417,12 +425,15 @@ def _frame(env: gym.Env) -> np.ndarray:
 
 
 def run_episode(env: SharedControlEnv, method: AssistanceMethod | None, user: Any, max_steps: int = 150,
-                record_frames: bool = False, *, seed: int | None = None, options: dict | None = None) -> EpisodeResult:
+                record_frames: bool = False, *, seed: int | None = None, options: dict | None = None,
+                stop_on_contact: bool = False) -> EpisodeResult:
     """Reset ``env`` (scene ``seed``, ``options`` e.g. ``target_grasp_index``) and let ``user`` drive.
 
     The user (``rtv3_maniskill.shared_control.simulated_users``) is reset towards the target
     pre-grasp (:meth:`SharedControlEnv.user_goal`) and called with the TCP pose ``(4, 4)`` every
-    step; ``method`` (None keeps ``env.method``) assists. Stops at success or after ``max_steps``.
+    step; ``method`` (None keeps ``env.method``) assists. Stops at success, after ``max_steps`` or,
+    with ``stop_on_contact`` (the paper's protocol: a contact fails the trial), at the first robot
+    contact.
     """
     if not isinstance(env, SharedControlEnv):
         raise TypeError(f"run_episode needs a SharedControlEnv, got {type(env).__name__}")
@@ -443,7 +454,7 @@ def run_episode(env: SharedControlEnv, method: AssistanceMethod | None, user: An
     collision = False
     steps = 0
     distance = float(info["pregrasp_distance"][0])
-    while not success and steps < max_steps:
+    while not success and steps < max_steps and not (stop_on_contact and collision):
         command = user(_tcp_pose(base))
         _, _, _, _, info = env.step(command)
         steps += 1
