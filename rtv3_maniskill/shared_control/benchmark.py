@@ -290,7 +290,7 @@ def summary_markdown(summary: Sequence[dict[str, Any]]) -> str:
 
 
 def plot_success_rates(summary: Sequence[dict[str, Any]], path: Path) -> None:
-    """Grouped bar plot: SR per user (groups) and method (bars); CR in a second panel."""
+    """Grouped bar plots: SR per user (groups) and method (bars) above, CR below."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -301,7 +301,7 @@ def plot_success_rates(summary: Sequence[dict[str, Any]], path: Path) -> None:
     table = {(s["user"], s["method"]): s for s in summary}
     width = 0.8 / max(len(methods), 1)
     x = np.arange(len(users))
-    fig, axes = plt.subplots(1, 2, figsize=(max(8, 2.4 * len(users) * 2), 4.2))
+    fig, axes = plt.subplots(2, 1, figsize=(max(7, 1.9 * len(users)), 7), sharex=True)
     for ax, key, title in ((axes[0], "SR", "Success rate (%)"), (axes[1], "CR", "Collision rate (%)")):
         for j, m in enumerate(methods):
             values = [table[(u, m)][key] if (u, m) in table else 0.0 for u in users]
