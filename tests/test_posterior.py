@@ -540,6 +540,16 @@ def test_velocity_limits_clamp_the_norms():
     torch.testing.assert_close(action[:3] / action[:3].norm(), torch.tensor([1.0, 0.0, 0.0]))
 
 
+def test_the_executed_twist_is_an_ordinary_tensor_callers_may_edit():
+    # The step runs under torch.inference_mode; what it hands out must not be an inference tensor.
+    ctrl = SharedController(HandBuiltPrior())
+    action = ctrl.step(make_observation(), torch.tensor([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    assert not action.is_inference()
+    action.mul_(0.5)  # an in-place edit of an inference tensor outside inference mode would raise
+    again = ctrl.step(make_observation(), None)  # the controller's state still works outside
+    assert torch.isfinite(again).all()
+
+
 def test_batched_step_mixes_modes_per_element():
     prior = HandBuiltPrior()
     ctrl = SharedController(prior)

@@ -271,6 +271,13 @@ class SharedController:
         Returns:
             ``(6,)`` (unbatched state) or ``(B, 6)`` robot body twist, EE frame.
         """
+        # A step is ~1,500 small tensor operations: inference mode spares each its autograd and
+        # version-counter bookkeeping. The twist handed out is an ordinary tensor again.
+        with torch.inference_mode():
+            action = self._step(observation, user_twist)
+        return action.clone()
+
+    def _step(self, observation: dict[str, torch.Tensor], user_twist: torch.Tensor | None) -> torch.Tensor:
         c = self.config
         if features.STATE not in observation:
             raise ValueError(f"observation lacks {features.STATE!r} (needed for the EE position)")
