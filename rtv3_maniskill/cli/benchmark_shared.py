@@ -41,6 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
     parser.add_argument("--ho-variant", default="rtv3_authors", choices=["rtv3_authors", "javdani2018"],
                         help="HO constants: the RT-V3 authors' translation-only baseline or the original ones")
+    parser.add_argument("--ood-alpha", type=float, default=None,
+                        help="RT-V3 OOD gate chi-square quantile (default 0.85, the authors'); higher trusts the prior more")
     parser.add_argument("--ood-covariance", choices=["class", "predictive"], default=None,
                         help="RT-V3 OOD gate distance under the class covariance (default) or class + user noise")
     parser.add_argument("--ood-dofs", choices=["twist", "translation"], default=None,
@@ -63,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
             stop_on_contact=not args.continue_after_contact,
             obs_mode=args.obs_mode, rendered_context=not args.mesh_context, scene_type=args.scene_type,
             ho_variant=args.ho_variant, shared_control={
-                key: value for key in ("ood_covariance", "ood_dofs", "uncommanded_axes")
+                key: value for key in ("ood_alpha", "ood_covariance", "ood_dofs", "uncommanded_axes")
                 if (value := getattr(args, key, None)) is not None
             },
         )
