@@ -15,7 +15,9 @@ from rtv3_maniskill.shared_control import make_user
 from rtv3_maniskill.shared_control.benchmark import (
     BenchmarkConfig,
     BenchmarkError,
+    RESULT_FIELDS,
     _check_config,
+    merge_runs,
     run_benchmark,
     summarize,
     summary_markdown,
@@ -237,6 +239,44 @@ def test_benchmark_writes_results_and_resumes_without_duplicates(tmp_path):
                               max_grasps_per_scene=1, max_steps=60)
     with pytest.raises(BenchmarkError, match="other settings"):
         run_benchmark(changed, progress=False)
+
+
+def _finished_run(folder, config, rows):
+    """A benchmark output folder as ``run_benchmark`` leaves it: ``config.json`` + ``results.csv``."""
+    folder.mkdir()
+    _check_config(folder, config.fingerprint(None))
+    with open(folder / "results.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, RESULT_FIELDS)
+        writer.writeheader()
+        for r in rows:
+            writer.writerow({k: r.get(k, 0) for k in RESULT_FIELDS})
+
+
+def _row(scene, method, outcome, steps):
+    return dict(scene_seed=scene, grasp_index=3, user="laggy", method=method, outcome=outcome,
+                success=int(outcome == "success"), collision=int(outcome == "collision"), steps=steps)
+
+
+def test_runs_split_over_processes_merge_into_one_summary(tmp_path):
+    config = BenchmarkConfig(output=tmp_path / "unused", scenes=2, users=["laggy"], methods=["direct"])
+    _finished_run(tmp_path / "direct", config, [_row(900000, "direct", "success", 30), _row(900001, "direct", "collision", 12)])
+    _finished_run(tmp_path / "ho", config, [_row(900000, "ho", "timeout", 150), _row(900001, "ho", "success", 50)])
+    summary = merge_runs([tmp_path / "direct", tmp_path / "ho"], tmp_path / "all")
+    assert [(s["method"], s["trials"], s["SR"], s["CR"], s["TOR"]) for s in summary] == [
+        ("direct", 2, 50.0, 50.0, 0.0), ("ho", 2, 50.0, 0.0, 50.0)]
+    assert len(_rows(tmp_path / "all" / "results.csv")) == 4
+    assert "| laggy | HO | 2 |" in (tmp_path / "all" / "summary.md").read_text()
+
+    with pytest.raises(BenchmarkError, match="choose a new --output"):
+        merge_runs([tmp_path / "direct", tmp_path / "ho"], tmp_path / "all")
+    with pytest.raises(BenchmarkError, match="in both"):
+        merge_runs([tmp_path / "direct", tmp_path / "direct"], tmp_path / "twice")
+    other = BenchmarkConfig(output=tmp_path / "unused", scenes=2, users=["laggy"], methods=["ho"], max_steps=100)
+    _finished_run(tmp_path / "ho100", other, [_row(900000, "ho", "success", 40)])
+    with pytest.raises(BenchmarkError, match="max_steps"):
+        merge_runs([tmp_path / "direct", tmp_path / "ho100"], tmp_path / "mixed")
+    with pytest.raises(BenchmarkError, match="config.json is missing"):
+        merge_runs([tmp_path / "direct", tmp_path / "nowhere"], tmp_path / "lost")
 
 
 def _started_rtv3_benchmark(tmp_path, weights: bytes):

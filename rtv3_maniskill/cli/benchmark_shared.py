@@ -1,7 +1,8 @@
 """``rtv3 benchmark-shared``: simulated users x assistance methods over clutter scenes (paper Table II).
 
 Resumable: run the same command again after an interruption; finished trials in
-``OUTPUT/results.csv`` are skipped.
+``OUTPUT/results.csv`` are skipped. Parallel: run disjoint ``--users`` / ``--methods`` in several
+processes, each with its own ``--output``, then ``--merge DIR DIR ... --output NEW``.
 """
 
 from __future__ import annotations
@@ -51,10 +52,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="zero axes of a user command: missing (default; the prior fills them in) or "
                              "observations of zero velocity (the paper's reading)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--merge", type=Path, nargs="+", metavar="DIR", default=None,
+                        help="run nothing: combine finished runs of disjoint users or methods (e.g. one process per "
+                             "method) into --output, which must be new")
 
 
 def run(args: argparse.Namespace) -> int:
-    from rtv3_maniskill.shared_control.benchmark import BenchmarkConfig, BenchmarkError, run_benchmark, summary_markdown
+    from rtv3_maniskill.shared_control.benchmark import (
+        BenchmarkConfig,
+        BenchmarkError,
+        merge_runs,
+        run_benchmark,
+        summary_markdown,
+    )
+
+    if args.merge is not None:
+        try:
+            summary = merge_runs(args.merge, args.output)
+        except BenchmarkError as err:
+            raise SystemExit(f"error: {err}") from None
+        print(summary_markdown(summary))
+        print(f"merged {len(args.merge)} runs: {args.output}/results.csv, summary.csv, summary.md, success_rates.png")
+        return 0
 
     users = _names(args.users) if isinstance(args.users, str) else args.users
     methods = _names(args.methods) if isinstance(args.methods, str) else args.methods

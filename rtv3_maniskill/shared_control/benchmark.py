@@ -14,7 +14,8 @@ pre-grasp reached whether or not the robot touched something, which differs from
 Outputs in ``output``: ``results.csv`` (one row per trial, appended and flushed as trials
 finish; a rerun skips the finished (scene, grasp, user, method) rows), ``summary.csv``,
 ``summary.md`` and ``success_rates.png``; ``config.json`` guards a resumed run against
-different settings.
+different settings. :func:`merge_runs` combines runs of disjoint users or methods made in
+parallel processes.
 
 Scene ``i`` uses seed ``seed * 100000 + i`` (``rtv3 generate``'s convention; the default
 seed 9 keeps the benchmark scenes apart from training scenes made with seeds 0..8). The
@@ -334,6 +335,65 @@ def write_summaries(output: Path, users: Sequence[str] | None = None, methods: S
     if summary:
         plot_success_rates(summary, output / "success_rates.png")
     return summary
+
+
+# ----------------------------------------------------------------------------- merging runs
+
+
+def merge_runs(sources: Sequence[Path], output: Path) -> list[dict[str, Any]]:
+    """Combine runs split over processes (e.g. ``--methods direct,ho`` and ``--methods rtv3``) into
+    ``output`` (a new folder): ``results.csv``, the summaries and the plot; returns the summary rows.
+
+    The runs must agree on every setting they both record (``config.json``; a run without RT-V3
+    records no policy), and no trial may appear in two of them. ``output/config.json`` holds the
+    combined settings, so the merged folder can be read and summarised but not resumed by a run
+    that lacks one of the merged parts' settings.
+    """
+    sources = [Path(d) for d in sources]
+    output = Path(output)
+    if len(sources) < 2:
+        raise BenchmarkError("give at least two benchmark output folders to merge")
+    if output.resolve() in {d.resolve() for d in sources}:
+        raise BenchmarkError(f"the merged output {output} must be a new folder, not one of the runs")
+    if (output / "results.csv").exists():
+        raise BenchmarkError(f"{output} already holds results.csv; choose a new --output for the merge")
+    settings: dict[str, Any] = {}
+    origin: dict[str, Path] = {}
+    rows: list[dict[str, Any]] = []
+    seen: dict[tuple[int, int, str, str], Path] = {}
+    for folder in sources:
+        config_path, results_path = folder / "config.json", folder / "results.csv"
+        for path in (config_path, results_path):
+            if not path.is_file():
+                raise BenchmarkError(f"{folder} is not a benchmark output folder: {path.name} is missing")
+        for key, value in json.loads(config_path.read_text()).items():
+            if value is None:
+                continue
+            if key in settings and settings[key] != value:
+                raise BenchmarkError(f"{origin[key]} and {folder} were run with other settings "
+                                     f"({key}: {settings[key]!r} vs {value!r}); they cannot be merged")
+            settings.setdefault(key, value)
+            origin.setdefault(key, folder)
+        with results_path.open(newline="") as f:
+            reader = csv.DictReader(f)
+            if tuple(reader.fieldnames or ()) != RESULT_FIELDS:
+                raise BenchmarkError(f"{results_path} has columns {reader.fieldnames}, expected {list(RESULT_FIELDS)}")
+            for row in reader:
+                key = ResultsFile.key(row)
+                if key in seen:
+                    raise BenchmarkError(f"trial {key} is in both {seen[key]} and {folder}; merge runs of disjoint "
+                                         "users or methods")
+                seen[key] = folder
+                rows.append(row)
+    output.mkdir(parents=True, exist_ok=True)
+    (output / "config.json").write_text(json.dumps(settings, indent=2))
+    with (output / "results.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, RESULT_FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+    users = list(dict.fromkeys(r["user"] for r in rows))
+    methods = [m for m in DEFAULT_METHODS if any(r["method"] == m for r in rows)]
+    return write_summaries(output, [u for u in DEFAULT_USERS if u in users] or users, methods)
 
 
 # ----------------------------------------------------------------------------- the run
