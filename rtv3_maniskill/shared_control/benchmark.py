@@ -8,8 +8,9 @@ ends as a *collision* at the first robot contact, as a *success* when the env's
 ``info["success"]`` comes first (pose distance to the pre-grasp < 0.1, shared-control
 weights, either parallel-jaw twin), and as a *timeout* after the step limit. Reported per
 (user, method): SR, CR, TOR, mean iterations of the successful trials, and "reached" (the
-pre-grasp reached whether or not the robot touched something, which differs from SR only when
-``stop_on_contact=False`` lets trials go on after a contact).
+pre-grasp reached whether or not the robot touched something, which differs from SR when
+``stop_on_contact=False`` lets trials go on after a contact, or when the contact and the arrival
+fall on the same step).
 
 Outputs in ``output``: ``results.csv`` (one row per trial, appended and flushed as trials
 finish; a rerun skips the finished (scene, grasp, user, method) rows), ``summary.csv``,
