@@ -184,6 +184,16 @@ def select_grasps(valid: Sequence[int], cap: int | None, seed: int, scene_seed: 
 # ----------------------------------------------------------------------------- results file
 
 
+def _result_rows(path: Path, hint: str = "") -> list[dict[str, str]]:
+    """The rows of a ``results.csv`` as read (strings), after checking its columns are this benchmark's."""
+    with Path(path).open(newline="") as f:
+        reader = csv.DictReader(f)
+        if tuple(reader.fieldnames or ()) != RESULT_FIELDS:
+            raise BenchmarkError(f"{path} has columns {reader.fieldnames}, expected {list(RESULT_FIELDS)}: "
+                                 f"not a results file of this benchmark{hint}")
+        return list(reader)
+
+
 class ResultsFile:
     """``results.csv``: one row per finished trial, flushed at once; keys of finished trials."""
 
@@ -191,15 +201,7 @@ class ResultsFile:
         self.path = path
         self.done: set[tuple[int, int, str, str]] = set()
         if path.exists() and path.stat().st_size > 0:
-            with path.open(newline="") as f:
-                reader = csv.DictReader(f)
-                if tuple(reader.fieldnames or ()) != RESULT_FIELDS:
-                    raise BenchmarkError(
-                        f"{path} has columns {reader.fieldnames}, expected {list(RESULT_FIELDS)}: "
-                        f"not a results file of this benchmark; choose another --output"
-                    )
-                for row in reader:
-                    self.done.add(self.key(row))
+            self.done = {self.key(row) for row in _result_rows(path, "; choose another --output")}
             self._file = path.open("a", newline="")
             self._writer = csv.DictWriter(self._file, RESULT_FIELDS)
         else:
@@ -223,15 +225,11 @@ class ResultsFile:
 
 def read_results(path: Path) -> list[dict[str, Any]]:
     """Rows of ``results.csv`` with numbers parsed."""
-    rows = []
-    with Path(path).open(newline="") as f:
-        for row in csv.DictReader(f):
-            rows.append({
-                **row,
-                "scene_seed": int(row["scene_seed"]), "grasp_index": int(row["grasp_index"]),
-                "success": int(row["success"]), "collision": int(row["collision"]), "steps": int(row["steps"]),
-            })
-    return rows
+    return [{
+        **row,
+        "scene_seed": int(row["scene_seed"]), "grasp_index": int(row["grasp_index"]),
+        "success": int(row["success"]), "collision": int(row["collision"]), "steps": int(row["steps"]),
+    } for row in _result_rows(path)]
 
 
 # ----------------------------------------------------------------------------- summary
@@ -258,7 +256,7 @@ def summarize(rows: Iterable[dict[str, Any]], users: Sequence[str] | None = None
             wins = [t for t in trials if t["outcome"] == "success"]
             out.append(dict(
                 user=u, method=m, trials=n,
-                SR=100.0 * outcomes.count("success") / n,
+                SR=100.0 * len(wins) / n,
                 CR=100.0 * outcomes.count("collision") / n,
                 TOR=100.0 * outcomes.count("timeout") / n,
                 reached=100.0 * sum(int(t["success"]) for t in trials) / n,
@@ -375,26 +373,20 @@ def merge_runs(sources: Sequence[Path], output: Path) -> list[dict[str, Any]]:
                                      f"({key}: {settings[key]!r} vs {value!r}); they cannot be merged")
             settings.setdefault(key, value)
             origin.setdefault(key, folder)
-        with results_path.open(newline="") as f:
-            reader = csv.DictReader(f)
-            if tuple(reader.fieldnames or ()) != RESULT_FIELDS:
-                raise BenchmarkError(f"{results_path} has columns {reader.fieldnames}, expected {list(RESULT_FIELDS)}")
-            for row in reader:
-                key = ResultsFile.key(row)
-                if key in seen:
-                    raise BenchmarkError(f"trial {key} is in both {seen[key]} and {folder}; merge runs of disjoint "
-                                         "users or methods")
-                seen[key] = folder
-                rows.append(row)
+        for row in _result_rows(results_path):
+            key = ResultsFile.key(row)
+            if key in seen:
+                raise BenchmarkError(f"trial {key} is in both {seen[key]} and {folder}; merge runs of disjoint "
+                                     "users or methods")
+            seen[key] = folder
+            rows.append(row)
     output.mkdir(parents=True, exist_ok=True)
     (output / "config.json").write_text(json.dumps(settings, indent=2))
     with (output / "results.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, RESULT_FIELDS)
         writer.writeheader()
         writer.writerows(rows)
-    users = list(dict.fromkeys(r["user"] for r in rows))
-    methods = [m for m in DEFAULT_METHODS if any(r["method"] == m for r in rows)]
-    return write_summaries(output, [u for u in DEFAULT_USERS if u in users] or users, methods)
+    return write_summaries(output, DEFAULT_USERS, DEFAULT_METHODS)  # the usual order; other names follow
 
 
 # ----------------------------------------------------------------------------- the run
