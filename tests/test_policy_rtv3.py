@@ -229,11 +229,13 @@ def test_grid_pooling_of_a_z_ordered_list_needs_no_sort():
     assert fast.order == "z" and bool((key[1:] > key[:-1]).all())  # one point per voxel, z-sorted
 
 
-def test_point_encoder_sample_alone_equals_sample_in_a_batch():
+@pytest.mark.parametrize("stem_poolings", [0, 1])
+def test_point_encoder_sample_alone_equals_sample_in_a_batch(stem_poolings: int):
     # B = 1 takes the unpadded fast path (full patches + a shorter last one); a batch pads every
     # sample to whole patches and masks. Both must encode a cloud identically.
     torch.manual_seed(0)
-    enc = PointTransformerEncoder(6, (16, 16), (2, 2), (1, 1), patch_size=32, grid_size=0.02, position_scale=1.0).eval()
+    enc = PointTransformerEncoder(6, (16, 16), (2, 2), (1, 1), patch_size=32, grid_size=0.02, position_scale=1.0,
+                                  stem_poolings=stem_poolings).eval()
     xyz, feat = torch.rand(2, 150, 3) * 0.4, torch.rand(2, 150, 6)
     mask = torch.ones(2, 150, dtype=torch.bool)
     mask[1, 97:] = False  # the second cloud is shorter: patches end mid-way
@@ -244,6 +246,34 @@ def test_point_encoder_sample_alone_equals_sample_in_a_batch():
             n = int(alone_mask.sum())
             assert int(token_mask[i].sum()) == n
             torch.testing.assert_close(alone[0, :n], tokens[i][token_mask[i]], atol=1e-5, rtol=1e-5)
+
+
+def test_stem_pooling_attends_over_one_point_per_coarse_voxel():
+    # point_stem_poolings=1: the first stage sees one point per occupied voxel of twice the input
+    # grid, so a cloud whose points are all repeated (a resampled scan) encodes exactly like the
+    # unrepeated one, and the token count is the number of occupied voxels of the last stage.
+    torch.manual_seed(0)
+    grid = 0.02
+    enc = PointTransformerEncoder(6, (16,), (2,), (1,), patch_size=32, grid_size=grid, position_scale=1.0,
+                                  stem_poolings=1).eval()
+    xyz, feat = torch.rand(1, 200, 3) * 0.3, torch.rand(1, 200, 6)
+    mask = torch.ones(1, 200, dtype=torch.bool)
+    with torch.no_grad():
+        tokens, token_mask = enc(xyz, feat, mask)
+        repeated, repeated_mask = enc(xyz.repeat(1, 2, 1), feat.repeat(1, 2, 1), mask.repeat(1, 2))
+    voxels = torch.floor((xyz[0] - xyz[0].amin(0)) / grid).long().div(2, rounding_mode="floor").unique(dim=0)
+    assert tokens.shape[1] == int(token_mask.sum()) == voxels.shape[0] < 200
+    torch.testing.assert_close(repeated, tokens, atol=1e-6, rtol=1e-6)
+    assert bool(repeated_mask.all())
+
+
+def test_stem_pooling_adds_no_parameters():
+    # init_weights_from a checkpoint of the authors' layout works for a stem-pooled policy (the default).
+    assert RTV3Config(device="cpu").point_stem_poolings == 1
+    plain, pooled = make_policy(point_stem_poolings=0).state_dict(), make_policy().state_dict()
+    assert {k: v.shape for k, v in plain.items()} == {k: v.shape for k, v in pooled.items()}
+    with pytest.raises(ValueError, match="point_stem_poolings"):
+        RTV3Config(device="cpu", point_stem_poolings=-1)
 
 
 # ----------------------------------------------------------------------------- shapes and masks
@@ -623,6 +653,7 @@ def test_twist_noise_and_sampled_rotation_conditioning_act_in_training_only():
     [
         dict(use_grasp_encoder=False),
         dict(use_point_encoder=False),
+        dict(point_stem_poolings=0),
         dict(use_grasp_encoder=False, use_point_encoder=False),
         dict(factorized_rotation=False),
         dict(latent_training="sample", num_maneuver_classes=25),

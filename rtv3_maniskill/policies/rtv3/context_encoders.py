@@ -125,9 +125,10 @@ class PointCloudEncoder(nn.Module):
 
     def __init__(self, in_dim: int, query_dim: int, channels: tuple[int, ...], heads: tuple[int, ...],
                  depths: tuple[int, ...], patch_size: int, grid_size: float, position_scale: float,
-                 decoder_heads: int, decoder_layers: int, dropout: float):
+                 decoder_heads: int, decoder_layers: int, dropout: float, stem_poolings: int = 0):
         super().__init__()
-        self.backbone = PointTransformerEncoder(in_dim, channels, heads, depths, patch_size, grid_size, position_scale)
+        self.backbone = PointTransformerEncoder(in_dim, channels, heads, depths, patch_size, grid_size, position_scale,
+                                                stem_poolings)
         dim = self.backbone.out_dim
         self.decoder = QueryDecoder(query_dim, dim, decoder_heads, decoder_layers, 4 * dim, dropout)
         self.out_dim = dim

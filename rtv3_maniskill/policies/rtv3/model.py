@@ -57,6 +57,7 @@ class RTV3Model(nn.Module):
                 depths=c.point_depths, patch_size=c.point_patch_size, grid_size=c.point_grid_size,
                 position_scale=c.position_scale, decoder_heads=c.point_decoder_heads,
                 decoder_layers=c.point_decoder_layers, dropout=c.transformer_dropout,
+                stem_poolings=c.point_stem_poolings,
             )
             h0_dim += self.point_encoder.out_dim
         self.grasp_encoder: GraspEncoder | None = None

@@ -176,6 +176,31 @@ class PointBlock(nn.Module):
         return x + self.mlp(self.norm2(x))
 
 
+def merge_coarser_voxels(pts: FlatPoints) -> FlatPoints:
+    """Merge points sharing a voxel of the 2x coarser grid: features max-pooled, coordinates averaged.
+
+    ``pts`` with features ``(L, C)`` -> one point per occupied coarse voxel ``(L', C)``, sorted by
+    (sample, z-order of the coarse grid). Parameter-free; :class:`GridPooling` projects first.
+    """
+    if pts.feat.shape[0] == 0:
+        return pts
+    feat, xyz_in = pts.feat, pts.xyz
+    coarse = torch.div(pts.grid, 2, rounding_mode="floor")
+    key = serial_key(pts.batch, coarse, "z")
+    if pts.order != "z":
+        key, order = torch.sort(key, stable=True)
+        feat, xyz_in, coarse = feat[order], xyz_in[order], coarse[order]
+    # else: halving every axis drops the lowest 3 bits of the z-order code, so a list sorted
+    # along the fine z-order is already sorted by the coarse key (the stable sort is the identity).
+    unique_keys, inverse = torch.unique_consecutive(key, return_inverse=True)
+    n, dim = unique_keys.shape[0], feat.shape[1]
+    pooled = feat.new_zeros(n, dim).scatter_reduce(0, inverse[:, None].expand(-1, dim), feat, "amax", include_self=False)
+    counts = torch.bincount(inverse, minlength=n).to(pts.xyz.dtype)
+    xyz = pts.xyz.new_zeros(n, 3).index_add_(0, inverse, xyz_in) / counts[:, None]
+    grid = coarse.new_zeros(n, 3).scatter_(0, inverse[:, None].expand(-1, 3), coarse)
+    return FlatPoints(pooled, xyz, grid, unique_keys >> _BATCH_SHIFT, pts.batch_size, "z")
+
+
 class GridPooling(nn.Module):
     """Merge points sharing a voxel of the 2x coarser grid: linear + norm + GELU, then max-pool."""
 
@@ -184,25 +209,7 @@ class GridPooling(nn.Module):
         self.proj = nn.Sequential(nn.Linear(in_dim, out_dim), nn.LayerNorm(out_dim), nn.GELU())
 
     def forward(self, pts: FlatPoints) -> FlatPoints:
-        feat = self.proj(pts.feat)
-        if pts.feat.shape[0] == 0:
-            return pts.with_feat(feat)
-        coarse = torch.div(pts.grid, 2, rounding_mode="floor")
-        key = serial_key(pts.batch, coarse, "z")
-        xyz_in = pts.xyz
-        if pts.order != "z":
-            key, order = torch.sort(key, stable=True)
-            feat, xyz_in, coarse = feat[order], xyz_in[order], coarse[order]
-        # else: halving every axis drops the lowest 3 bits of the z-order code, so a list sorted
-        # along the fine z-order is already sorted by the coarse key (the stable sort is the identity).
-        unique_keys, inverse = torch.unique_consecutive(key, return_inverse=True)
-        n, dim = unique_keys.shape[0], feat.shape[1]
-        pooled = feat.new_zeros(n, dim).scatter_reduce(0, inverse[:, None].expand(-1, dim), feat, "amax", include_self=False)
-        counts = torch.bincount(inverse, minlength=n).to(pts.xyz.dtype)
-        xyz = pts.xyz.new_zeros(n, 3).index_add_(0, inverse, xyz_in) / counts[:, None]
-        grid = coarse.new_zeros(n, 3).scatter_(0, inverse[:, None].expand(-1, 3), coarse)
-        # One point per coarse voxel, sorted by (sample, z-order of the coarse grid).
-        return FlatPoints(pooled, xyz, grid, unique_keys >> _BATCH_SHIFT, pts.batch_size, "z")
+        return merge_coarser_voxels(pts.with_feat(self.proj(pts.feat)))
 
 
 class PointTransformerEncoder(nn.Module):
@@ -211,8 +218,11 @@ class PointTransformerEncoder(nn.Module):
     Args:
         in_dim: per-point input features (e.g. 6 = scaled xyz + rgb).
         channels / heads / depths: per stage (NOTES: 32/32/C, 2/4/4, 1/1/1).
-        patch_size: points per attention patch (120). grid_size: first-stage voxel size (m, 7.5 mm).
+        patch_size: points per attention patch (120). grid_size: input voxel size (m, 7.5 mm).
         position_scale: multiplies coordinates fed to the positional MLPs.
+        stem_poolings: parameter-free merges into a 2x coarser grid between the embedding and the
+            first stage (0: the first stage attends over every input point at ``grid_size``; 1: over
+            one point per voxel of twice that size, ~3x fewer points for a surface scan).
     """
 
     def __init__(
@@ -224,9 +234,13 @@ class PointTransformerEncoder(nn.Module):
         patch_size: int,
         grid_size: float,
         position_scale: float,
+        stem_poolings: int = 0,
     ):
         super().__init__()
+        if stem_poolings < 0:
+            raise ValueError(f"stem_poolings must be >= 0, got {stem_poolings}")
         self.grid_size = grid_size
+        self.stem_poolings = stem_poolings
         self.orders = ["z" if i % 2 == 0 else "z-trans" for i in range(len(channels))]
         self.embed = nn.Sequential(nn.Linear(in_dim, channels[0]), nn.LayerNorm(channels[0]), nn.GELU())
         self.stages = nn.ModuleList(
@@ -263,6 +277,8 @@ class PointTransformerEncoder(nn.Module):
         """
         pts = self.flatten(xyz, feat, mask)
         pts = pts.with_feat(self.embed(pts.feat))
+        for _ in range(self.stem_poolings):
+            pts = merge_coarser_voxels(pts)
         for i, blocks in enumerate(self.stages):
             if i > 0:
                 pts = self.pools[i - 1](pts)
