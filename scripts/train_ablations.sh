@@ -8,13 +8,15 @@
 # grasp context (see scripts/train_shipped_checkpoint.sh), which would hide the very
 # difference the "no grasp encoder" row measures.
 # Then: python scripts/evaluate_ablations.py (prediction on held-out scenes + planning).
-# Environment: STEPS (per run), BATCH, DATA (a LeRobot dataset from `rtv3 generate`).
+# Environment: STEPS (per run), BATCH, DATA (a LeRobot dataset from `rtv3 generate`), STEM (the point
+# encoder's stem poolings: 0, the authors' layout, as the README's table was made; 1 is the config default).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 STEPS=${STEPS:-3000}
 BATCH=${BATCH:-32}
 DATA=${DATA:-data/train}
 OUT=${OUT:-outputs/ablations}
+STEM=${STEM:-0}
 bash scripts/setup.sh
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 mkdir -p "$OUT"
@@ -35,7 +37,7 @@ for row in "${!ROWS[@]}"; do
               --policy.push_to_hub=false --policy.device=cpu --wandb.enable=false
               --dataset.repo_id=local/rtv3_grasp_clutter --dataset.root="$DATA"
               --batch_size="$BATCH" --steps="$STEPS" --num_workers=1 --save_freq=100 --log_freq=50
-              --seed=1 --output_dir="$OUT/$row")
+              --seed=1 --output_dir="$OUT/$row" --policy.point_stem_poolings="$STEM")
     fi
     .venv/bin/lerobot-train "${args[@]}" >"$OUT/$row.log" 2>&1 &
 done

@@ -24,18 +24,21 @@
 # Stage 3 of the shipped weights ran on top of them from the 2,810-trajectory data/train this
 # script generates (scenes 100000..100299 with the current planner): checkpoint 300 of a 900-step run
 # (SR and CR of 300, 600 and 900 compared on planning and shared control; see README).
-# Environment: STEPS1, STEPS2, STEPS3, BATCH trade time for quality.
+# Environment: STEPS1, STEPS2, STEPS3, BATCH trade time for quality; STEM=1 trains with the point
+# encoder's stem pooling (the config default since session 8; the shipped weights have 0).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 STEPS1=${STEPS1:-2000}
 STEPS2=${STEPS2:-2100}
 STEPS3=${STEPS3:-300}
 BATCH=${BATCH:-64}
+STEM=${STEM:-0}
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 bash scripts/setup.sh
 COMMON=(--grasps-per-scene 16 --num-points 512 --seed 1)
 TRAIN=(--policy.push_to_hub=false --policy.device=cpu --wandb.enable=false --batch_size="$BATCH"
-       --num_workers=1 --save_freq=500 --log_freq=50 --dataset.repo_id=local/rtv3_grasp_clutter)
+       --num_workers=1 --save_freq=500 --log_freq=50 --dataset.repo_id=local/rtv3_grasp_clutter
+       --policy.point_stem_poolings="$STEM")
 
 .venv/bin/rtv3 generate --num-scenes 104 --output data/train_stage1 --end-at grasp "${COMMON[@]}"
 rm -rf outputs/train_stage1
