@@ -29,7 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
                         help="RT-V3 checkpoint folder (config.json + model.safetensors); "
                              "default: rtv3_maniskill/checkpoints/rtv3_grasp_clutter")
-    parser.add_argument("--seed", type=int, default=900000, help="scene seed (same seed, same scene and target)")
+    parser.add_argument("--seed", type=int, default=900003,
+                        help="scene seed (same seed, same scene and target); the default scene shows all three modes")
     parser.add_argument("--user", default="mode_switching",
                         help="simulated user: noisy, laggy, mode_switching, single_dof, low_dof or ideal")
     parser.add_argument("--user-seed", type=int, default=0, help="seed of the user's randomness")
