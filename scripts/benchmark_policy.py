@@ -1,7 +1,7 @@
 """Benchmark the RT-V3 policy on CPU: ``select_action`` latency and training throughput.
 
 Usage: ``python scripts/benchmark_policy.py [--threads 2] [--steps 200] [--repeats 3] [--train-batches 5]
-[--policy.path DIR] [--scene-seed S] [--point-stem-poolings K]``
+[--policy.path DIR] [--scene-seed S] [--point-stem-poolings K] [--device cuda]``
 
 Inputs are synthetic but shaped like the dataset (N = 2048 points, M = 64 grasps, T = 8, H = 12), every
 point and grasp slot real: the worst case for a cloud of N slots. ``--scene-seed S`` times a rendered
@@ -54,6 +54,23 @@ def synthetic_batch(batch: int, cfg: RTV3Config, seed: int = 0) -> dict[str, tor
     }
 
 
+def machine_check() -> str:
+    """How fast this machine is right now: float32 512 x 512 matmul throughput and the cost of one small
+    tensor op (one thread each). A shared VM drifts; quote this line with a latency so runs can be compared."""
+    a, x = torch.randn(512, 512), torch.randn(16)
+    for _ in range(10):
+        a @ a
+    t0 = time.perf_counter()
+    for _ in range(50):
+        a @ a
+    gflops = 2 * 512**3 * 50 / (time.perf_counter() - t0) / 1e9
+    t0 = time.perf_counter()
+    for _ in range(5000):
+        x + 1
+    small_op_us = (time.perf_counter() - t0) / 5000 * 1e6
+    return f"machine check: 512x512 float32 matmul {gflops:.0f} GFLOPS, one small tensor op {small_op_us:.2f} us"
+
+
 def rendered_scene_observation(scene_seed: int, cfg: RTV3Config) -> dict[str, torch.Tensor]:
     """Single-step policy inputs ``(1, ...)`` of scene ``scene_seed`` of ``GraspClutter-v1`` (rendered cloud)."""
     import gymnasium as gym
@@ -72,6 +89,9 @@ def rendered_scene_observation(scene_seed: int, cfg: RTV3Config) -> dict[str, to
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--threads", type=int, default=1, help="intra-op threads (1 is robust on a shared 2-core machine)")
+    parser.add_argument("--device", default="cpu",
+                        help="torch device of the policy (e.g. cuda); inputs start on the CPU, as an observation does, "
+                             "and every timed call waits for the device")
     parser.add_argument("--steps", type=int, default=200, help="select_action calls timed per repeat")
     parser.add_argument("--repeats", type=int, default=3, help="timed repeats of --steps calls")
     parser.add_argument("--train-batches", type=int, default=5)
@@ -87,8 +107,16 @@ def main() -> None:
     args = parser.parse_args()
     if args.steps < 1 or args.repeats < 1 or args.threads < 1 or args.train_batches < 1:
         parser.error("--steps, --repeats, --threads and --train-batches must be >= 1")
+    try:
+        device = torch.device(args.device)
+    except RuntimeError as err:
+        parser.error(f"--device {args.device!r}: {err}")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: torch finds no CUDA device on this machine")
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
+    print(machine_check())
 
     if args.policy_path is not None:
         policy = RTV3Policy.from_pretrained(args.policy_path)
@@ -99,8 +127,9 @@ def main() -> None:
             overrides["point_stem_poolings"] = args.point_stem_poolings
         cfg = RTV3Config(device="cpu", **overrides)
         policy = RTV3Policy(cfg)
-    print(f"parameters: {sum(p.numel() for p in policy.parameters()):,}  threads: {torch.get_num_threads()}  "
-          f"N={cfg.num_points} M={cfg.max_grasps}  point_stem_poolings={cfg.point_stem_poolings}")
+    policy.to(device)
+    print(f"parameters: {sum(p.numel() for p in policy.parameters()):,}  device: {device}  threads: "
+          f"{torch.get_num_threads()}  N={cfg.num_points} M={cfg.max_grasps}  point_stem_poolings={cfg.point_stem_poolings}")
 
     if args.scene_seed is None:
         full = synthetic_batch(1, cfg)
@@ -116,12 +145,14 @@ def main() -> None:
     policy.reset()
     for _ in range(10):
         policy.select_action(single)
+    sync()
     times, cpu_times, repeat_medians = [], [], []
     for _ in range(args.repeats):
         this_repeat = []
         for _ in range(args.steps):
             t0, c0 = time.perf_counter(), time.process_time()
             policy.select_action(single)
+            sync()
             this_repeat.append((time.perf_counter() - t0) * 1e3)
             cpu_times.append((time.process_time() - c0) * 1e3)
         times += this_repeat
@@ -137,14 +168,16 @@ def main() -> None:
     t0 = time.perf_counter()
     for _ in range(20):
         policy.predict_step0_mixture(single, update_history=False)
+    sync()
     print(f"predict_step0_mixture (B=1): mean {(time.perf_counter() - t0) / 20 * 1e3:.2f} ms")
 
-    batch = synthetic_batch(args.train_batch_size, cfg, seed=1)
+    batch = {k: v.to(device) for k, v in synthetic_batch(args.train_batch_size, cfg, seed=1).items()}
     policy.train()
     optimizer = torch.optim.Adam(policy.parameters(), lr=1e-3)
     loss, _ = policy.forward(batch)
     loss.backward()
     optimizer.step()
+    sync()
     t0 = time.perf_counter()
     for _ in range(args.train_batches):
         optimizer.zero_grad()
@@ -152,6 +185,7 @@ def main() -> None:
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
         optimizer.step()
+    sync()
     elapsed = time.perf_counter() - t0
     rate = args.train_batches * args.train_batch_size / elapsed
     print(
