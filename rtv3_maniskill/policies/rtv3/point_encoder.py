@@ -267,8 +267,9 @@ class PointTransformerEncoder(nn.Module):
         batch = torch.arange(xyz.shape[0], device=xyz.device)[:, None].expand(mask.shape)
         if bool(mask.all()):
             flat = lambda t: t.reshape(-1, *t.shape[2:])  # noqa: E731
-        else:
-            flat = lambda t: t[mask]  # noqa: E731
+        else:  # one nonzero for the four tensors (t[mask] would find the rows again for each)
+            rows = mask.reshape(-1).nonzero().squeeze(1)
+            flat = lambda t: t.reshape(-1, *t.shape[2:]).index_select(0, rows)  # noqa: E731
         return FlatPoints(flat(feat), flat(xyz), flat(grid), flat(batch), xyz.shape[0])
 
     def forward(self, xyz: torch.Tensor, feat: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
