@@ -31,10 +31,26 @@ def _skew_map() -> torch.Tensor:
 
 _SKEW = _skew_map()
 
+_CONSTANTS: dict[tuple[int, torch.dtype, torch.device], torch.Tensor] = {}
+
+
+def _constant(table: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """The float64 module constant ``table`` in ``like``'s dtype and device, converted once.
+
+    Created outside inference mode, so a conversion first made in an inference call can
+    still be saved for backward in a later training step.
+    """
+    key = (id(table), like.dtype, like.device)
+    out = _CONSTANTS.get(key)
+    if out is None:
+        with torch.inference_mode(False):
+            out = _CONSTANTS[key] = table.to(dtype=like.dtype, device=like.device)
+    return out
+
 
 def skew(w: torch.Tensor) -> torch.Tensor:
     """``(..., 3) -> (..., 3, 3)`` cross-product matrix ``[w]_x``."""
-    return (w @ _SKEW.to(w)).reshape(*w.shape[:-1], 3, 3)
+    return (w @ _constant(_SKEW, w)).reshape(*w.shape[:-1], 3, 3)
 
 
 def _so3_coefficients(theta: torch.Tensor, with_c: bool = True):
@@ -175,7 +191,7 @@ def quat_to_matrix(quat: torch.Tensor) -> torch.Tensor:
     """Unit quaternion ``(..., 4)`` wxyz -> rotation matrix ``(..., 3, 3)``."""
     quat = quat / quat.norm(dim=-1, keepdim=True)
     outer = (quat[..., :, None] * quat[..., None, :]).reshape(*quat.shape[:-1], 16)
-    return (outer @ _QUAT_MATRIX.to(quat)).reshape(*quat.shape[:-1], 3, 3)
+    return (outer @ _constant(_QUAT_MATRIX, quat)).reshape(*quat.shape[:-1], 3, 3)
 
 
 def _linear_map(rows: list[dict[str, float]]) -> torch.Tensor:
@@ -193,14 +209,15 @@ _QUAT_CANDIDATES = _linear_map([
     {"m10": 1, "m01": -1}, {"m02": 1, "m20": 1}, {"m12": 1, "m21": 1}, {"1": 1, "m00": -1, "m11": -1, "m22": 1},
 ])
 _QUAT_PIVOTS = _linear_map([{"m00": 1, "m11": 1, "m22": 1}, {"m00": 1}, {"m11": 1}, {"m22": 1}])
+_QUAT_MAPS_T = torch.cat([_QUAT_CANDIDATES, _QUAT_PIVOTS]).T.contiguous()
+"""``(10, 20)``: ``[1, m00 .. m22] @ _QUAT_MAPS_T`` = the 4 candidates x 4, then the 4 pivots."""
 
 
 def matrix_to_quat(rot: torch.Tensor) -> torch.Tensor:
     """Rotation matrix ``(..., 3, 3)`` -> unit quaternion ``(..., 4)`` wxyz with ``w >= 0``."""
     lead = rot.shape[:-2]
     entries = torch.cat([torch.ones(*lead, 1, dtype=rot.dtype, device=rot.device), rot.reshape(*lead, 9)], -1)
-    maps = torch.cat([_QUAT_CANDIDATES, _QUAT_PIVOTS]).to(rot)
-    out = entries @ maps.T  # (..., 20): 4 candidates x 4, then the 4 pivots [trace, m00, m11, m22]
+    out = entries @ _constant(_QUAT_MAPS_T, rot)  # (..., 20): 4 candidates x 4, then the 4 pivots [trace, m00, m11, m22]
     cands = out[..., :16].reshape(*lead, 4, 4)
     best = out[..., 16:].argmax(-1)
     quat = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4))[..., 0, :]
@@ -272,8 +289,17 @@ def symmetric_pose_distance(target: torch.Tensor, pose: torch.Tensor, rot_weight
     return torch.minimum(d, pose_distance(rotate_about_z(target, math.pi), pose, rot_weight))
 
 
+_HALF_TURN_Z = torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=torch.float64)
+"""Column signs of ``T @ Rz(pi)`` for a ``(4, 4)`` transform."""
+
+
 def rotate_about_z(transform: torch.Tensor, angle: float) -> torch.Tensor:
-    """Right-multiply ``(..., 4, 4)`` by a rotation of ``angle`` about the local z axis."""
+    """Right-multiply ``(..., 4, 4)`` by a rotation of ``angle`` about the local z axis.
+
+    ``angle == math.pi`` (a parallel-jaw grasp's twin) is exact: the x and y axes change sign.
+    """
+    if angle == math.pi:
+        return transform * _constant(_HALF_TURN_Z, transform)
     rz = torch.tensor(
         [[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0], [0.0, 0.0, 1.0]],
         dtype=transform.dtype,
