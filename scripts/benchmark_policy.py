@@ -1,10 +1,15 @@
 """Benchmark the RT-V3 policy on CPU: ``select_action`` latency and training throughput.
 
 Usage: ``python scripts/benchmark_policy.py [--threads 2] [--steps 200] [--repeats 3] [--train-batches 5]
-[--policy.path DIR] [--scene-seed S] [--point-stem-poolings K] [--device cuda]``
+[--policy.path DIR] [--cloud table-box|surface|volume] [--scene-seed S] [--point-stem-poolings K] [--device cuda]``
 
 Inputs are synthetic but shaped like the dataset (N = 2048 points, M = 64 grasps, T = 8, H = 12), every
-point and grasp slot real: the worst case for a cloud of N slots. ``--scene-seed S`` times a rendered
+point and grasp slot real. With stem pooling the cost also depends on how many 15 mm voxels the cloud
+occupies (the first stage attends over one token per voxel), so ``--cloud`` picks its spatial spread:
+``table-box`` (default: 1,024 points on a 60 x 60 cm table, 1,024 in a 6 cm box; ~830 tokens),
+``surface`` (2,048 points on a 7.5 mm grid, the densest a voxel-filtered depth scan of a plane gets;
+~520 tokens) or ``volume`` (uniform in 60 x 60 x 30 cm, almost one token per point: no depth camera
+gives such a cloud, the stem pooling's worst case). ``--scene-seed S`` times a rendered
 ``GraspClutter-v1`` scene instead (depth-camera cloud with N slots, of which a scan fills a few hundred
 after the 7.5 mm voxel filter; the scene's own grasps).
 ``select_action`` is timed ``--repeats`` times ``--steps`` calls; the result is the median of the
@@ -14,6 +19,7 @@ repeats' medians (a shared VM drifts by 20-50 % from minute to minute), each rep
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 import time
 
@@ -24,8 +30,28 @@ from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
 
 
-def synthetic_batch(batch: int, cfg: RTV3Config, seed: int = 0) -> dict[str, torch.Tensor]:
-    """A batch with a straight-line EE history, points on a table + box, grasps around the box."""
+SYNTHETIC_CLOUDS = ("table-box", "surface", "volume")
+
+
+def synthetic_xyz(batch: int, n: int, cloud: str, g: torch.Generator) -> torch.Tensor:
+    """``(batch, n, 3)`` world-frame points (m) of the ``cloud`` layout (see the module docstring)."""
+    if cloud == "table-box":
+        table = torch.rand(batch, n // 2, 3, generator=g) * torch.tensor([0.6, 0.6, 0.0]) + torch.tensor([0.0, -0.3, 0.0])
+        box = torch.rand(batch, n - n // 2, 3, generator=g) * 0.06 + torch.tensor([0.4, 0.0, 0.0])
+        return torch.cat([table, box], 1)
+    if cloud == "surface":  # row-major 7.5 mm grid, each point jittered inside its voxel
+        side = math.ceil(math.sqrt(n))
+        index = torch.arange(n)
+        cells = torch.stack([index // side, index % side], -1).float()
+        xy = (cells + torch.rand(batch, n, 2, generator=g)) * 0.0075 + torch.tensor([0.2, -0.2])
+        return torch.cat([xy, torch.zeros(batch, n, 1)], -1)
+    if cloud == "volume":
+        return torch.rand(batch, n, 3, generator=g) * torch.tensor([0.6, 0.6, 0.3]) + torch.tensor([0.0, -0.3, 0.0])
+    raise ValueError(f"unknown synthetic cloud {cloud!r}; use one of {SYNTHETIC_CLOUDS}")
+
+
+def synthetic_batch(batch: int, cfg: RTV3Config, seed: int = 0, cloud: str = "table-box") -> dict[str, torch.Tensor]:
+    """A batch with a straight-line EE history, points laid out as ``cloud``, grasps around the box."""
     g = torch.Generator().manual_seed(seed)
     t, h, n, m = cfg.n_obs_steps, cfg.horizon, cfg.num_points, cfg.max_grasps
     state = torch.zeros(batch, t, ft.STATE_DIM)
@@ -35,9 +61,7 @@ def synthetic_batch(batch: int, cfg: RTV3Config, seed: int = 0) -> dict[str, tor
     state[..., 3] = 0.0
     state[..., 4] = 1.0  # gripper pointing down (180 deg about x)
     state[..., 7:10] = velocity * torch.tensor([1.0, -1.0, -1.0])
-    table = torch.rand(batch, n // 2, 3, generator=g) * torch.tensor([0.6, 0.6, 0.0]) + torch.tensor([0.0, -0.3, 0.0])
-    box = torch.rand(batch, n - n // 2, 3, generator=g) * 0.06 + torch.tensor([0.4, 0.0, 0.0])
-    xyz = torch.cat([table, box], 1)
+    xyz = synthetic_xyz(batch, n, cloud, g)
     cloud = torch.cat([xyz, torch.rand(batch, n, 3, generator=g)], -1)
     grasp_pos = torch.tensor([0.43, 0.03, 0.1]) + 0.02 * torch.randn(batch, m, 3, generator=g)
     grasp_quat = torch.tensor([0.0, 1.0, 0.0, 0.0]).expand(batch, m, 4)
@@ -86,6 +110,18 @@ def rendered_scene_observation(scene_seed: int, cfg: RTV3Config) -> dict[str, to
         env.close()
 
 
+def first_stage_tokens(policy: RTV3Policy, single: dict[str, torch.Tensor]) -> int:
+    """Points entering the first PTv3 stage for the observation ``single`` (one extra, untimed call)."""
+    seen = []
+    first_block = policy.model.point_encoder.backbone.stages[0][0]
+    hook = first_block.register_forward_pre_hook(lambda module, args: seen.append(args[0].feat.shape[0]))
+    try:
+        policy.select_action(single, update_history=False)
+    finally:
+        hook.remove()
+    return seen[0]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--threads", type=int, default=1, help="intra-op threads (1 is robust on a shared 2-core machine)")
@@ -99,6 +135,8 @@ def main() -> None:
     parser.add_argument("--point-patch-size", type=int, default=None, help="override the PTv3 patch size (120)")
     parser.add_argument("--point-stem-poolings", type=int, default=None,
                         help="override RTV3Config.point_stem_poolings of the untrained default-size policy")
+    parser.add_argument("--cloud", choices=SYNTHETIC_CLOUDS, default="table-box",
+                        help="spatial layout of the synthetic cloud (see the module docstring)")
     parser.add_argument("--scene-seed", type=int, default=None,
                         help="time a rendered GraspClutter-v1 scene (its cloud and grasps) instead of synthetic inputs")
     parser.add_argument("--policy.path", dest="policy_path", default=None,
@@ -132,10 +170,10 @@ def main() -> None:
           f"{torch.get_num_threads()}  N={cfg.num_points} M={cfg.max_grasps}  point_stem_poolings={cfg.point_stem_poolings}")
 
     if args.scene_seed is None:
-        full = synthetic_batch(1, cfg)
+        full = synthetic_batch(1, cfg, cloud=args.cloud)
         single = {k: v for k, v in full.items() if k.startswith("observation.")}
         single[ft.STATE] = full[ft.STATE][:, -1]  # one control step: (1, 27)
-        inputs = "synthetic"
+        inputs = f"synthetic {args.cloud}"
     else:
         single = rendered_scene_observation(args.scene_seed, cfg)
         inputs = f"scene {args.scene_seed}"
@@ -143,6 +181,8 @@ def main() -> None:
           f"{int(single[ft.GRASPS_MASK].sum())} of {cfg.max_grasps} grasp slots")
     policy.eval()
     policy.reset()
+    if policy.model.point_encoder is not None:
+        print(f"first point stage attends over {first_stage_tokens(policy, single)} tokens")
     for _ in range(10):
         policy.select_action(single)
     sync()
