@@ -62,13 +62,13 @@ def synthetic_batch(batch: int, cfg: RTV3Config, seed: int = 0, cloud: str = "ta
     state[..., 4] = 1.0  # gripper pointing down (180 deg about x)
     state[..., 7:10] = velocity * torch.tensor([1.0, -1.0, -1.0])
     xyz = synthetic_xyz(batch, n, cloud, g)
-    cloud = torch.cat([xyz, torch.rand(batch, n, 3, generator=g)], -1)
+    point_cloud = torch.cat([xyz, torch.rand(batch, n, 3, generator=g)], -1)
     grasp_pos = torch.tensor([0.43, 0.03, 0.1]) + 0.02 * torch.randn(batch, m, 3, generator=g)
     grasp_quat = torch.tensor([0.0, 1.0, 0.0, 0.0]).expand(batch, m, 4)
     grasps = torch.cat([grasp_pos, grasp_quat, torch.full((batch, m, 1), 0.05), torch.ones(batch, m, 1)], -1)
     return {
         ft.STATE: state,
-        ft.POINT_CLOUD: cloud,
+        ft.POINT_CLOUD: point_cloud,
         ft.POINT_CLOUD_MASK: torch.ones(batch, n),
         ft.GRASPS: grasps,
         ft.GRASPS_MASK: torch.ones(batch, m),
@@ -136,7 +136,7 @@ def main() -> None:
     parser.add_argument("--point-stem-poolings", type=int, default=None,
                         help="override RTV3Config.point_stem_poolings of the untrained default-size policy")
     parser.add_argument("--cloud", choices=SYNTHETIC_CLOUDS, default="table-box",
-                        help="spatial layout of the synthetic cloud (see the module docstring)")
+                        help="spatial layout of the synthetic cloud (see the module docstring; ignored with --scene-seed)")
     parser.add_argument("--scene-seed", type=int, default=None,
                         help="time a rendered GraspClutter-v1 scene (its cloud and grasps) instead of synthetic inputs")
     parser.add_argument("--policy.path", dest="policy_path", default=None,
