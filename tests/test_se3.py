@@ -59,3 +59,27 @@ def test_pose_distance_and_its_gripper_symmetric_version():
     twin = se3.rotate_about_z(pose, math.pi)
     assert (se3.pose_distance(pose, twin, 0.3 / math.pi) > 0.29).all()
     assert torch.allclose(se3.symmetric_pose_distance(pose, twin, 0.3 / math.pi), torch.zeros(3, dtype=pose.dtype), atol=1e-7)
+
+
+def test_half_turn_about_z_is_exact_and_matches_the_general_rotation():
+    pose = se3.se3_exp(_random_twists(5, 8))
+    twin = se3.rotate_about_z(pose, math.pi)
+    torch.testing.assert_close(twin, se3.rotate_about_z(pose, math.pi - 1e-9), atol=1e-8, rtol=0)
+    torch.testing.assert_close(se3.relative_transform(pose, twin)[:, :3, :3],
+                               torch.diag(torch.tensor([-1.0, -1.0, 1.0], dtype=pose.dtype)).expand(5, 3, 3))
+    assert torch.equal(se3.rotate_about_z(twin, math.pi), pose)  # the twin of the twin is the grasp, bit for bit
+    assert torch.equal(twin[:, :3, 3], pose[:, :3, 3])
+
+
+def test_functions_first_called_in_inference_mode_still_train():
+    """Constants converted on a first call under ``torch.inference_mode`` are reused by later
+    training steps; they must be ordinary tensors that autograd may save."""
+    se3._CONSTANTS.clear()  # make this the first float32 call of the process
+    w = torch.randn(4, 3, dtype=torch.float32)
+    with torch.inference_mode():
+        expected = se3.se3_log(se3.se3_exp(torch.cat([w, w], -1)))
+    xi = torch.cat([w, w], -1).requires_grad_(True)
+    out = se3.se3_log(se3.se3_exp(xi))
+    out.sum().backward()
+    torch.testing.assert_close(out.detach(), expected)
+    assert xi.grad is not None and bool(torch.isfinite(xi.grad).all())
