@@ -34,8 +34,8 @@ _SKEW = _skew_map()
 _CONSTANTS: dict[tuple[int, torch.dtype, torch.device], torch.Tensor] = {}
 
 
-def _constant(table: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """The float64 module constant ``table`` in ``like``'s dtype and device, converted once.
+def constant_like(table: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """The module-level constant ``table`` in ``like``'s dtype and device, converted once.
 
     Created outside inference mode, so a conversion first made in an inference call can
     still be saved for backward in a later training step.
@@ -50,7 +50,7 @@ def _constant(table: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 
 def skew(w: torch.Tensor) -> torch.Tensor:
     """``(..., 3) -> (..., 3, 3)`` cross-product matrix ``[w]_x``."""
-    return (w @ _constant(_SKEW, w)).reshape(*w.shape[:-1], 3, 3)
+    return (w @ constant_like(_SKEW, w)).reshape(*w.shape[:-1], 3, 3)
 
 
 def _so3_coefficients(theta: torch.Tensor, with_c: bool = True):
@@ -191,7 +191,7 @@ def quat_to_matrix(quat: torch.Tensor) -> torch.Tensor:
     """Unit quaternion ``(..., 4)`` wxyz -> rotation matrix ``(..., 3, 3)``."""
     quat = quat / quat.norm(dim=-1, keepdim=True)
     outer = (quat[..., :, None] * quat[..., None, :]).reshape(*quat.shape[:-1], 16)
-    return (outer @ _constant(_QUAT_MATRIX, quat)).reshape(*quat.shape[:-1], 3, 3)
+    return (outer @ constant_like(_QUAT_MATRIX, quat)).reshape(*quat.shape[:-1], 3, 3)
 
 
 def _linear_map(rows: list[dict[str, float]]) -> torch.Tensor:
@@ -217,7 +217,7 @@ def matrix_to_quat(rot: torch.Tensor) -> torch.Tensor:
     """Rotation matrix ``(..., 3, 3)`` -> unit quaternion ``(..., 4)`` wxyz with ``w >= 0``."""
     lead = rot.shape[:-2]
     entries = torch.cat([torch.ones(*lead, 1, dtype=rot.dtype, device=rot.device), rot.reshape(*lead, 9)], -1)
-    out = entries @ _constant(_QUAT_MAPS_T, rot)  # (..., 20): 4 candidates x 4, then the 4 pivots [trace, m00, m11, m22]
+    out = entries @ constant_like(_QUAT_MAPS_T, rot)  # (..., 20): 4 candidates x 4, then the 4 pivots [trace, m00, m11, m22]
     cands = out[..., :16].reshape(*lead, 4, 4)
     best = out[..., 16:].argmax(-1)
     quat = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4))[..., 0, :]
@@ -299,7 +299,7 @@ def rotate_about_z(transform: torch.Tensor, angle: float) -> torch.Tensor:
     ``angle == math.pi`` (a parallel-jaw grasp's twin) is exact: the x and y axes change sign.
     """
     if angle == math.pi:
-        return transform * _constant(_HALF_TURN_Z, transform)
+        return transform * constant_like(_HALF_TURN_Z, transform)
     rz = torch.tensor(
         [[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0], [0.0, 0.0, 1.0]],
         dtype=transform.dtype,

@@ -87,7 +87,7 @@ def points_in_frame(frame: torch.Tensor, xyz: torch.Tensor) -> torch.Tensor:
     return ((xyz - trans)[..., None, :] @ rot)[..., 0, :]
 
 
-_IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])
+_IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
 
 
 def grasps_in_frame(frame: torch.Tensor, grasps: torch.Tensor) -> torch.Tensor:
@@ -99,7 +99,7 @@ def grasps_in_frame(frame: torch.Tensor, grasps: torch.Tensor) -> torch.Tensor:
     rotation and are masked by the caller.
     """
     quat = grasps[..., 3:7]
-    safe_quat = torch.where(quat.norm(dim=-1, keepdim=True) > 1e-8, quat, _IDENTITY_QUAT.to(quat))
+    safe_quat = torch.where(quat.norm(dim=-1, keepdim=True) > 1e-8, quat, se3.constant_like(_IDENTITY_QUAT, quat))
     relative = se3.relative_transform(frame[:, None], se3.pose_to_matrix(grasps[..., 0:3], safe_quat))
     flipped = se3.rotate_about_z(relative, math.pi)
     flip = (relative[..., 0, 0] + relative[..., 1, 1]) < 0
