@@ -78,6 +78,29 @@ def synthetic_batch(batch: int, cfg: RTV3Config, seed: int = 0, cloud: str = "ta
     }
 
 
+def synthetic_observation(cfg: RTV3Config, cloud: str = "table-box") -> dict[str, torch.Tensor]:
+    """Single-step policy inputs ``(1, ...)`` of :func:`synthetic_batch`: the current state ``(1, 27)`` and
+    the scene context."""
+    full = synthetic_batch(1, cfg, cloud=cloud)
+    single = {k: v for k, v in full.items() if k.startswith("observation.")}
+    single[ft.STATE] = full[ft.STATE][:, -1]  # one control step: (1, 27)
+    return single
+
+
+def time_select_action(policy: RTV3Policy, single: dict[str, torch.Tensor], steps: int,
+                       sync=lambda: None) -> tuple[list[float], list[float]]:
+    """Wall and process-CPU times (ms) of ``steps`` consecutive ``select_action`` calls; ``sync`` waits
+    for the device after each."""
+    wall, cpu = [], []
+    for _ in range(steps):
+        t0, c0 = time.perf_counter(), time.process_time()
+        policy.select_action(single)
+        sync()
+        wall.append((time.perf_counter() - t0) * 1e3)
+        cpu.append((time.process_time() - c0) * 1e3)
+    return wall, cpu
+
+
 def machine_check() -> str:
     """How fast this machine is right now: float32 512 x 512 matmul throughput and the cost of one small
     tensor op (one thread each). A shared VM drifts; quote this line with a latency so runs can be compared."""
@@ -170,9 +193,7 @@ def main() -> None:
           f"{torch.get_num_threads()}  N={cfg.num_points} M={cfg.max_grasps}  point_stem_poolings={cfg.point_stem_poolings}")
 
     if args.scene_seed is None:
-        full = synthetic_batch(1, cfg, cloud=args.cloud)
-        single = {k: v for k, v in full.items() if k.startswith("observation.")}
-        single[ft.STATE] = full[ft.STATE][:, -1]  # one control step: (1, 27)
+        single = synthetic_observation(cfg, args.cloud)
         inputs = f"synthetic {args.cloud}"
     else:
         single = rendered_scene_observation(args.scene_seed, cfg)
@@ -188,14 +209,9 @@ def main() -> None:
     sync()
     times, cpu_times, repeat_medians = [], [], []
     for _ in range(args.repeats):
-        this_repeat = []
-        for _ in range(args.steps):
-            t0, c0 = time.perf_counter(), time.process_time()
-            policy.select_action(single)
-            sync()
-            this_repeat.append((time.perf_counter() - t0) * 1e3)
-            cpu_times.append((time.process_time() - c0) * 1e3)
+        this_repeat, this_cpu = time_select_action(policy, single, args.steps, sync)
         times += this_repeat
+        cpu_times += this_cpu
         repeat_medians.append(statistics.median(this_repeat))
     q = statistics.quantiles(times, n=20)
     median = statistics.median(repeat_medians)

@@ -14,12 +14,17 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 
 import torch
 from tqdm import tqdm
 
-from benchmark_policy import SYNTHETIC_CLOUDS, first_stage_tokens, rendered_scene_observation, synthetic_batch
+from benchmark_policy import (
+    SYNTHETIC_CLOUDS,
+    first_stage_tokens,
+    rendered_scene_observation,
+    synthetic_observation,
+    time_select_action,
+)
 from rtv3_maniskill import features as ft
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
@@ -40,10 +45,7 @@ def main() -> None:
     policies[0].load_state_dict(policies[1].state_dict())
     observations: dict[str, dict[str, torch.Tensor]] = {}
     for cloud in SYNTHETIC_CLOUDS:
-        full = synthetic_batch(1, policies[1].config, cloud=cloud)
-        single = {k: v for k, v in full.items() if k.startswith("observation.")}
-        single[ft.STATE] = full[ft.STATE][:, -1]  # one control step: (1, 27)
-        observations[cloud] = single
+        observations[cloud] = synthetic_observation(policies[1].config, cloud)
     if args.scene_seed is not None:
         observations[f"scene {args.scene_seed}"] = rendered_scene_observation(args.scene_seed, policies[1].config)
 
@@ -56,12 +58,8 @@ def main() -> None:
             policy.reset()
             for _ in range(10):
                 policy.select_action(obs)
-            times = []
-            for _ in range(args.steps):
-                t0 = time.perf_counter()
-                policy.select_action(obs)
-                times.append((time.perf_counter() - t0) * 1e3)
-            medians[(stem, cloud)].append(statistics.median(times))
+            wall, _ = time_select_action(policy, obs, args.steps)
+            medians[(stem, cloud)].append(statistics.median(wall))
 
     print("| cloud | real points | stem pooling (default): tokens, ms | authors' layout: tokens, ms |")
     print("| --- | --- | --- | --- |")
