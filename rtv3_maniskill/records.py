@@ -1,0 +1,201 @@
+"""Resumable run records: every long run (dataset generation, benchmarks) keeps its results here.
+
+A run folder holds one append-only CSV per kind of record (one row per finished unit of work:
+an attempted demonstration, a planning trial, a shared-control trial) and a JSON file with the
+run's settings. A rerun with the same settings skips the finished rows; a rerun with other
+settings is refused, but only once the folder holds a record (a run that failed before its
+first record never blocks the corrected rerun).
+
+Every row is flushed and fsync'd as it is written. A row torn by a killed process (the file
+does not end with a newline) is cut off when the store is opened, so it is neither counted nor
+glued to the next row. This module also owns the scene numbering and the seeded choice of
+targets that every run shares, so that the same seed means the same scenes everywhere.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+
+SCENE_SEED_STRIDE = 100000
+"""Scene ``i`` of a run with seed ``s`` has scene seed ``s * SCENE_SEED_STRIDE + i``."""
+
+
+def scene_seeds(seed: int, count: int) -> list[int]:
+    """The scene seeds ``seed * 100000 + i`` for ``i < count``."""
+    if count < 0:
+        raise ValueError(f"the number of scenes must be >= 0, got {count}")
+    return [int(seed) * SCENE_SEED_STRIDE + i for i in range(count)]
+
+
+def select_targets(valid: Iterable[int], cap: int | None, seed: int, scene_seed: int, salt: int) -> list[int]:
+    """All ``valid`` indices (sorted), or a seeded random subset of ``cap`` of them (sorted).
+
+    The subset depends only on ``(seed, scene_seed, salt)``: each kind of run has its own
+    ``salt``, so a planning run and a shared-control run with the same seed pick independently.
+    """
+    valid = sorted(int(v) for v in valid)
+    if cap is not None and cap < 1:
+        raise ValueError(f"the number of targets per scene must be >= 1 (or None for all), got {cap}")
+    if cap is None or cap >= len(valid):
+        return valid
+    rng = np.random.default_rng([int(seed), int(scene_seed), int(salt)])
+    return sorted(int(i) for i in rng.choice(valid, size=cap, replace=False))
+
+
+class SettingsMismatch(ValueError):
+    """A run folder holds records made with other settings (the message names them)."""
+
+
+def _fsync_write(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (temporary file, fsync, rename)."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class RecordStore:
+    """An append-only CSV of finished records, keyed, with the run's settings beside it.
+
+    Args:
+        path: the CSV file (created with a header when missing).
+        fields: its columns, in order. An existing file with other columns is refused.
+        key: the columns that identify a record (e.g. ``("scene_seed", "grasp_index")``).
+        settings: the run's settings (JSON-serialisable). When the store already holds a
+            record, they must equal those saved with it, else :class:`SettingsMismatch`.
+            ``None`` = no guard (read-only use, merged folders).
+        settings_path: where they are kept; default ``<path stem>.settings.json`` beside ``path``.
+        is_complete: optional check of a parsed row; rows failing it are ignored as torn.
+    """
+
+    def __init__(self, path: str | Path, fields: Sequence[str], key: Sequence[str],
+                 settings: dict[str, Any] | None = None, settings_path: str | Path | None = None,
+                 is_complete: Callable[[dict[str, str]], bool] | None = None) -> None:
+        self.path = Path(path)
+        self.fields = tuple(fields)
+        self.key_fields = tuple(key)
+        missing = [k for k in self.key_fields if k not in self.fields]
+        if missing:
+            raise ValueError(f"key columns {missing} are not among the fields {list(self.fields)}")
+        self.settings_path = Path(settings_path) if settings_path is not None else self.path.with_name(
+            self.path.stem + ".settings.json")
+        self._is_complete = is_complete
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._cut_torn_tail()
+        self.rows: list[dict[str, str]] = self.read(self.path, self.fields, is_complete) if self.path.exists() else []
+        self._keys = {self.key(row) for row in self.rows}
+        if settings is not None:
+            self._guard_settings(settings)
+        new = not self.path.exists() or self.path.stat().st_size == 0
+        self._file = open(self.path, "a", newline="")
+        self._writer = csv.DictWriter(self._file, self.fields)
+        if new:
+            self._writer.writeheader()
+            self._flush()
+
+    # ------------------------------------------------------------------ reading
+
+    @staticmethod
+    def read(path: str | Path, fields: Sequence[str],
+             is_complete: Callable[[dict[str, str]], bool] | None = None) -> list[dict[str, str]]:
+        """The complete rows of a record file (strings). A torn row (missing or extra columns,
+        no newline at the end of the file, or failing ``is_complete``) is skipped.
+
+        Raises:
+            FileNotFoundError: no file at ``path``.
+            ValueError: the header is not ``fields`` (the message names the file and both).
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"no record file at {path}")
+        with open(path, newline="") as f:
+            text = f.read()
+        if not text:
+            return []
+        if not text.endswith("\n"):
+            text = text[: text.rfind("\n") + 1]  # the torn last row
+        reader = csv.DictReader(io.StringIO(text, newline=""))
+        if tuple(reader.fieldnames or ()) != tuple(fields):
+            raise ValueError(f"{path} has the columns {reader.fieldnames}, expected {list(fields)}: not a record "
+                             "file of this kind of run (or written by another version); use another output folder")
+        rows = []
+        for row in reader:
+            if None in row or any(v is None for v in row.values()):
+                continue
+            if is_complete is not None and not is_complete(row):
+                continue
+            rows.append(row)
+        return rows
+
+    def key(self, row: dict[str, Any]) -> tuple[str, ...]:
+        """The identifying columns of ``row``, as strings."""
+        return tuple(str(row[k]) for k in self.key_fields)
+
+    def __contains__(self, key: tuple[Any, ...] | dict[str, Any]) -> bool:
+        if isinstance(key, dict):
+            return self.key(key) in self._keys
+        return tuple(str(k) for k in key) in self._keys
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    # ------------------------------------------------------------------ writing
+
+    def append(self, row: dict[str, Any]) -> None:
+        """Write one finished record (fsync'd before returning)."""
+        unknown = sorted(set(row) - set(self.fields))
+        if unknown:
+            raise ValueError(f"record has columns {unknown} that {self.path.name} does not have")
+        self._writer.writerow({k: row.get(k, "") for k in self.fields})
+        self._flush()
+        stored = {k: str(row.get(k, "")) for k in self.fields}
+        self.rows.append(stored)
+        self._keys.add(self.key(stored))
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> RecordStore:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def _flush(self) -> None:
+        self._file.flush()
+        os.fsync(self._file.fileno())
+
+    def _cut_torn_tail(self) -> None:
+        """Drop a last row that a killed process left without its newline."""
+        if not self.path.exists() or self.path.stat().st_size == 0:
+            return
+        data = self.path.read_bytes()
+        if data.endswith(b"\n"):
+            return
+        with open(self.path, "r+b") as f:
+            f.truncate(data.rfind(b"\n") + 1)
+            f.flush()
+            os.fsync(f.fileno())
+
+    def _guard_settings(self, settings: dict[str, Any]) -> None:
+        settings = json.loads(json.dumps(settings))  # the form they take on disk (tuples -> lists)
+        if self.rows and self.settings_path.exists():
+            saved = json.loads(self.settings_path.read_text())
+            changed = {k: (saved.get(k), settings.get(k)) for k in sorted(set(saved) | set(settings))
+                       if saved.get(k) != settings.get(k)}
+            if changed:
+                detail = "; ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in changed.items())
+                raise SettingsMismatch(
+                    f"{self.path.parent} holds {len(self.rows)} records made with other settings ({detail}); "
+                    "use the same settings to resume, or another output folder")
+            return
+        _fsync_write(self.settings_path, json.dumps(settings, indent=2))
