@@ -1,8 +1,43 @@
 """RT-V3 shared control on ManiSkill3 and LeRobot.
 
-``import rtv3_maniskill`` registers the ManiSkill task ``GraspClutter-v1``.
+``import rtv3_maniskill`` registers the ManiSkill task ``GraspClutter-v1`` with gymnasium
+without loading the simulator: ManiSkill and SAPIEN load on the first
+``gym.make("GraspClutter-v1", ...)`` (or on ``import rtv3_maniskill.tasks``). The pure parts
+(``se3``, ``features``, ``shared_control``, ``policies``) never load them.
 """
 
-from rtv3_maniskill import tasks  # noqa: F401  (registers GraspClutter-v1)
+from __future__ import annotations
 
 __version__ = "0.1.0"
+
+ENV_ID = "GraspClutter-v1"
+MAX_EPISODE_STEPS = 150
+
+
+def make_grasp_clutter(**kwargs):
+    """gymnasium entry point of ``GraspClutter-v1``: loads the task (ManiSkill's own registration
+    replaces this lazy one) and builds the env through ManiSkill's registry."""
+    import rtv3_maniskill.tasks  # noqa: F401  (replaces this lazy registration by ManiSkill's)
+    from mani_skill.utils.registration import make
+
+    return make(ENV_ID, **kwargs)
+
+
+def _register_lazily() -> None:
+    import gymnasium as gym
+    from gymnasium.envs.registration import WrapperSpec
+
+    if ENV_ID in gym.registry:
+        return
+    gym.register(
+        ENV_ID,
+        entry_point="rtv3_maniskill:make_grasp_clutter",
+        max_episode_steps=MAX_EPISODE_STEPS,
+        disable_env_checker=True,
+        # The wrapper ManiSkill's own registration adds (truncation from the env's step count).
+        additional_wrappers=(WrapperSpec("MSTimeLimit", "mani_skill.utils.registration:TimeLimitWrapper",
+                                         dict(max_episode_steps=MAX_EPISODE_STEPS)),),
+    )
+
+
+_register_lazily()

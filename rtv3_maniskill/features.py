@@ -17,6 +17,8 @@ HISTORY_STEPS = 8
 HORIZON_STEPS = 12
 """H: future steps predicted."""
 
+PREGRASP_DISTANCE = 0.05
+"""m: a pre-grasp is its grasp moved this far back along the approach (tool z) axis."""
 DEFAULT_NUM_POINTS = 2048
 DEFAULT_MAX_GRASPS = 64
 
@@ -25,15 +27,15 @@ STATE = "observation.state"
 ee body twist (6), arm joint positions (7, rad), arm joint velocities (7, rad/s)]."""
 STATE_DIM = 27
 STATE_HISTORY = "observation.state_history"
-"""``(T, 27)`` the last T states (oldest first, the current one last), the first state repeated
+"""``(T, 27)`` (stored flat, see :data:`STORED_FLAT`) the last T states (oldest first, the current one last), the first state repeated
 before the episode start. Stored by the dataset so that training reads one row per sample
 instead of a T-frame window of every ``observation.*`` key (point clouds included)."""
 POINT_CLOUD = "observation.point_cloud"
-"""``(N, 6)`` xyz (world, m) + rgb in [0, 1]; rows where the mask is 0 are zeros."""
+"""``(N, 6)`` (stored flat, see :data:`STORED_FLAT`) xyz (world, m) + rgb in [0, 1]; rows where the mask is 0 are zeros."""
 POINT_CLOUD_MASK = "observation.point_cloud_mask"
 """``(N,)`` 1.0 for a real point, 0.0 for padding."""
 GRASPS = "observation.grasps"
-"""``(M, 9)`` grasp candidates: TCP position (3, world, m), quaternion wxyz (4, world),
+"""``(M, 9)`` (stored flat, see :data:`STORED_FLAT`) grasp candidates: TCP position (3, world, m), quaternion wxyz (4, world),
 gripper width (1, m), score (1, in [0, 1]). Rows where the mask is 0 are zeros."""
 GRASP_DIM = 9
 GRASPS_MASK = "observation.grasps_mask"
@@ -42,6 +44,43 @@ ACTION = "action"
 """``(6,)`` end-effector body twist [v, w] realised over this step: log(T_t^-1 T_{t+1}) / dt."""
 TARGET_GRASP = "target_grasp_index"
 """``(1,)`` int64 index into the grasp set of the episode's target (privileged)."""
+
+STORED_FLAT = {STATE_HISTORY: STATE_DIM, POINT_CLOUD: 6, GRASPS: GRASP_DIM}
+"""Row width of the features that are 2-D ``(rows, width)`` but stored flat ``(rows * width,)``
+(row-major) in the LeRobot dataset: LeRobot 0.4.4's dataset tools (``lerobot-edit-dataset``
+delete_episodes / split / merge / modify_tasks) copy data through pandas, which cannot handle
+the ``Array2D`` columns of 2-D features. Readers bring them back with :func:`unflatten`."""
+
+
+def stored_shape(key: str, rows: int) -> tuple[int]:
+    """Dataset shape of a :data:`STORED_FLAT` feature with ``rows`` rows: ``(rows * width,)``."""
+    return (rows * STORED_FLAT[key],)
+
+
+def rows_of(key: str, shape) -> int:
+    """Row count (N points, M grasps, T steps) of a :data:`STORED_FLAT` feature from its
+    dataset/policy feature shape, stored flat ``(rows * width,)`` or laid out ``(rows, width)``."""
+    shape, width = tuple(int(s) for s in shape), STORED_FLAT[key]
+    if len(shape) == 2 and shape[1] == width:
+        return shape[0]
+    if len(shape) == 1 and shape[0] % width == 0:
+        return shape[0] // width
+    raise ValueError(f"'{key}' has shape {shape}; expected (rows, {width}) or flat (rows * {width},)")
+
+
+def unflatten(key: str, value):
+    """A :data:`STORED_FLAT` feature as stored ``(..., rows * width)`` -> ``(..., rows, width)``
+    (numpy or torch, any leading dims); a value whose last dim already is the row width and
+    that has a rows dim passes through unchanged (so both layouts are accepted)."""
+    width = STORED_FLAT[key]
+    if value.ndim >= 2 and value.shape[-1] == width:
+        return value
+    if value.ndim < 1 or value.shape[-1] % width:
+        raise ValueError(
+            f"'{key}' has shape {tuple(value.shape)}; expected (..., rows, {width}) or flat (..., rows * {width})"
+        )
+    return value.reshape(*value.shape[:-1], value.shape[-1] // width, width)
+
 
 # Slices of observation.state
 EE_POS = slice(0, 3)

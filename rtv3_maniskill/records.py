@@ -92,7 +92,7 @@ class RecordStore:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._cut_torn_tail()
         self.rows: list[dict[str, str]] = self.read(self.path, self.fields, is_complete) if self.path.exists() else []
-        self._keys = {self.key(row) for row in self.rows}
+        self._by_key = {self.key(row): row for row in self.rows}
         if settings is not None:
             self._guard_settings(settings)
         new = not self.path.exists() or self.path.stat().st_size == 0
@@ -141,9 +141,12 @@ class RecordStore:
         return tuple(str(row[k]) for k in self.key_fields)
 
     def __contains__(self, key: tuple[Any, ...] | dict[str, Any]) -> bool:
-        if isinstance(key, dict):
-            return self.key(key) in self._keys
-        return tuple(str(k) for k in key) in self._keys
+        return self.get(key) is not None
+
+    def get(self, key: tuple[Any, ...] | dict[str, Any]) -> dict[str, str] | None:
+        """The record with this key (a tuple of the key columns' values, or a row), or None."""
+        wanted = self.key(key) if isinstance(key, dict) else tuple(str(k) for k in key)
+        return self._by_key.get(wanted)
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -159,7 +162,7 @@ class RecordStore:
         self._flush()
         stored = {k: str(row.get(k, "")) for k in self.fields}
         self.rows.append(stored)
-        self._keys.add(self.key(stored))
+        self._by_key[self.key(stored)] = stored
 
     def close(self) -> None:
         self._file.close()

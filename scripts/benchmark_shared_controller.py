@@ -44,16 +44,16 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     from tqdm import tqdm
 
-    import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
+    from rtv3_maniskill.experiments.episodes import SharedControlEnv
     from rtv3_maniskill.features import observation_from_env
     from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
     from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
     from rtv3_maniskill.shared_control import SharedControlConfig, SharedController, make_user
-    from rtv3_maniskill.shared_control.env_wrapper import DEFAULT_POLICY_PATH, SharedControlEnv, load_rtv3_policy
+    from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT, load_policy
 
-    path = args.policy_path or (DEFAULT_POLICY_PATH if (DEFAULT_POLICY_PATH / "model.safetensors").is_file() else None)
+    path = args.policy_path or (SHIPPED_CHECKPOINT if (SHIPPED_CHECKPOINT / "model.safetensors").is_file() else None)
     if path is not None:
-        policy = load_rtv3_policy(path)
+        policy = load_policy(path)
         source = str(path)
     else:
         torch.manual_seed(0)

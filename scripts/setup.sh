@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Idempotent set-up for a fresh Debian 12 / Python 3.11 machine, with or without a GPU.
-#   1. a virtual environment in ./.venv with the project (and the LeRobot plugin shim);
+#   1. a virtual environment in ./.venv with the project and its LeRobot plugin
+#      (plugins/lerobot_policy_rtv3: outside the repository root, so that Python started
+#      there cannot mistake the folder for the installed package);
 #   2. only when SAPIEN finds no usable Vulkan device: Mesa's software Vulkan driver
 #      (lavapipe >= 24.3, from Debian's bookworm-backports suite), which ManiSkill needs
 #      to render point clouds on a machine without a GPU.
@@ -19,16 +21,16 @@ if [[ ! -x .venv/bin/python ]]; then
   "$PY" -m venv .venv
 fi
 stamp=.venv/.rtv3-installed
-want="$(cat pyproject.toml $(ls lerobot_policy_rtv3/pyproject.toml 2>/dev/null || true) | sha1sum | cut -c1-16)${extras}"
+plugin=plugins/lerobot_policy_rtv3
+# The stamp covers both pyprojects and the plugin's path (an install from an old path is redone).
+want="$( (cat pyproject.toml $plugin/pyproject.toml; echo $plugin) | sha1sum | cut -c1-16)${extras}"
 have="$(cat $stamp 2>/dev/null || true)"
 # An install with the test extras also serves a plain set-up (the demo after the tests).
 if [[ "$have" != "$want" && ! ( -z "$extras" && "$have" == "${want}[dev]" ) ]]; then
   log "installing rtv3-maniskill${extras} and its pinned dependencies into .venv (first time: several minutes, ~5 GB of wheels)"
   .venv/bin/pip install --quiet --upgrade "pip>=24"
   .venv/bin/pip install --quiet -e ".${extras}"
-  if [[ -d lerobot_policy_rtv3 ]]; then
-    .venv/bin/pip install --quiet --no-deps -e ./lerobot_policy_rtv3
-  fi
+  .venv/bin/pip install --quiet --no-deps -e "./$plugin"
   echo "$want" > $stamp
 fi
 

@@ -27,18 +27,17 @@ def _trial(text: str) -> tuple[int, int]:
 
 
 def main() -> None:
-    from rtv3_maniskill.shared_control.env_wrapper import DEFAULT_POLICY_PATH
+    from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT, load_policy
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--policy.path", dest="policy_path", type=Path, default=DEFAULT_POLICY_PATH)
+    parser.add_argument("--policy.path", dest="policy_path", type=Path, default=SHIPPED_CHECKPOINT)
     parser.add_argument("--trial", dest="trials", type=_trial, action="append", required=True,
                         help="SCENE_SEED:GRASP_INDEX (repeatable)")
     parser.add_argument("--max-steps", type=int, default=150)
     parser.add_argument("--output", type=Path, default=Path("outputs/planning_trace"))
     args = parser.parse_args()
 
-    from rtv3_maniskill.evaluation.planning import PlanningBenchmark, PlanningConfig
-    from rtv3_maniskill.evaluation.prediction import load_policy
+    from rtv3_maniskill.experiments.planning import PlanningBenchmark, PlanningConfig
 
     torch.set_num_threads(1)
     policy = load_policy(args.policy_path)

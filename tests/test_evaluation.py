@@ -14,7 +14,7 @@ import torch
 from rtv3_maniskill import features as ft
 from rtv3_maniskill import se3
 from rtv3_maniskill.cli import main
-from rtv3_maniskill.evaluation import planning, prediction
+from rtv3_maniskill.experiments import planning, prediction
 
 NUM_POINTS, MAX_GRASPS = 256, 16
 GEN_ARGS = ["--num-points", str(NUM_POINTS), "--max-grasps", str(MAX_GRASPS), "--context", "mesh", "--scene-type", "packed"]
@@ -292,18 +292,18 @@ def test_a_controller_that_reaches_the_pregrasp_counts_as_success(tmp_path):
     assert int(row["steps"]) < 150
 
 
-def test_trials_file_survives_a_torn_last_line_and_summary_leaves_out_missing_starts(tmp_path):
-    path = tmp_path / "planning_trials.csv"
-    trials = planning.TrialsFile(path)
+def test_planning_trials_resume_after_a_torn_row_and_summary_leaves_out_missing_starts(tmp_path):
+    trials = planning.trials_store(tmp_path, {"seed": 9})
     base = dict(start_distance="0.5", final_distance="0.1", min_distance="0.1", reached_grasp=2, context_grasps=1,
                 start_attempts=1, wall_time_s="1.0")
     trials.append(dict(base, scene_seed=7, grasp_index=2, outcome="success", steps=40))
     trials.append(dict(base, scene_seed=7, grasp_index=3, outcome="no_start_pose", steps=0))
     trials.close()
+    path = tmp_path / "planning_trials.csv"
     with open(path, "a") as f:
         f.write("7,4,collis")  # killed mid-write
-    resumed = planning.TrialsFile(path)
-    assert set(resumed.rows) == {(7, 2), (7, 3)}
+    resumed = planning.trials_store(tmp_path, {"seed": 9})
+    assert (7, 2) in resumed and (7, 3) in resumed and (7, 4) not in resumed
     resumed.append(dict(base, scene_seed=7, grasp_index=4, outcome="timeout", steps=150))
     resumed.close()
     rows = planning.read_trials(path)
@@ -312,14 +312,13 @@ def test_trials_file_survives_a_torn_last_line_and_summary_leaves_out_missing_st
     assert summary["trials"] == 2 and summary["no_start_pose"] == 1
     assert (summary["SR"], summary["CR"], summary["TOR"]) == (0.5, 0.0, 0.5)
     assert summary["mean_steps_success"] == 40.0
-    path.write_text("scene,grasp\n1,2\n")
-    with pytest.raises(ValueError, match="columns"):
-        planning.TrialsFile(path)
+    with pytest.raises(ValueError, match="other settings"):
+        planning.trials_store(tmp_path, {"seed": 10})
 
 
 def test_step0_calibration_of_a_known_gaussian():
     """Samples of the ML class's own Gaussian are covered at the chi2 rate; far points are not."""
-    from rtv3_maniskill.evaluation.prediction import step0_calibration
+    from rtv3_maniskill.experiments.prediction import step0_calibration
     from rtv3_maniskill.twist_mixture import TwistMixture
 
     b, k = 4000, 2

@@ -416,7 +416,8 @@ class HandBuiltPrior:
         self.resets += 1
 
 
-def make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.0),), batch: int | None = None, grasps: int = 3):
+def make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.0),), batch: int = 1, grasps: int = 3):
+    """A batched feature dict (every element the same)."""
     state = torch.zeros(features.STATE_DIM)
     state[features.EE_POS] = torch.tensor(ee)
     state[features.EE_QUAT] = torch.tensor([1.0, 0.0, 0.0, 0.0])
@@ -434,19 +435,17 @@ def make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.0),), batch:
         features.GRASPS: torch.zeros(4, features.GRASP_DIM),
         features.GRASPS_MASK: gmask,
     }
-    if batch is not None:
-        obs = {k: v.expand(batch, *v.shape).clone() for k, v in obs.items()}
-    return obs
+    return {k: v.expand(batch, *v.shape).clone() for k, v in obs.items()}
 
 
 def test_no_input_far_from_objects_runs_the_prior_autonomously():
     prior = HandBuiltPrior()
     ctrl = SharedController(prior, SharedControlConfig(autonomy_cutoff_distance=0.07))
-    for user in (None, torch.zeros(6)):
+    for user in (None, torch.zeros(1, 6)):
         action = ctrl.step(make_observation(ee=(0, 0, 0.3)), user)
         assert ctrl.last_diagnostics.mode == "autonomous"
-        torch.testing.assert_close(action, torch.tensor([0.3, 0.0, 0.0, 0.0, 0.0, 0.6]))
-    assert action.shape == (6,)
+        torch.testing.assert_close(action, torch.tensor([[0.3, 0.0, 0.0, 0.0, 0.0, 0.6]]))
+    assert action.shape == (1, 6) and action.dtype == torch.float32
     # class weights shown are the prior's
     torch.testing.assert_close(ctrl.last_diagnostics.class_weights[0].float(), torch.tensor([0.3, 0.7]))
 
@@ -462,13 +461,13 @@ def test_autonomous_action_is_the_policys_most_likely_action():
     gen = torch.Generator().manual_seed(1)
     obs = make_observation(ee=(0.0, 0.0, 0.3), grasps=2)
     obs[features.GRASPS] = torch.cat([torch.rand(4, 3, generator=gen) * 0.1, torch.tensor([[0.0, 1.0, 0.0, 0.0]] * 4),
-                                      torch.full((4, 1), 0.04), torch.ones(4, 1)], -1)
+                                      torch.full((4, 1), 0.04), torch.ones(4, 1)], -1)[None]
     ctrl = SharedController(policy, SharedControlConfig(max_linear_speed=None, max_angular_speed=None))
     ctrl.reset()
     action = ctrl.step(obs, None)
     assert ctrl.last_diagnostics.mode == "autonomous"
     policy.reset()
-    expected = policy.select_action({k: v[None] for k, v in obs.items()})[0]
+    expected = policy.select_action(obs).reshape(1, 6)
     torch.testing.assert_close(action, expected, atol=1e-5, rtol=1e-4)
 
 
@@ -479,21 +478,21 @@ def test_no_input_near_the_object_surface_hands_control_to_the_user():
     assert surface_distance(obs)[0] == pytest.approx(0.05)
     action = ctrl.step(obs, None)
     assert ctrl.last_diagnostics.mode == "user_only"
-    assert torch.equal(action, torch.zeros(6))
+    assert torch.equal(action, torch.zeros(1, 6))
     # padded points (mask 0) do not count: the only valid point is far away
-    obs[features.POINT_CLOUD_MASK][0] = 0.0
+    obs[features.POINT_CLOUD_MASK][0, 0] = 0.0
     ctrl.step(obs, None)
     assert ctrl.last_diagnostics.mode == "autonomous"
     # asynchronous mode off: no autonomy even far away
     ctrl_sync = SharedController(HandBuiltPrior(), SharedControlConfig(asynchronous=False))
-    assert torch.equal(ctrl_sync.step(make_observation(), None), torch.zeros(6))
+    assert torch.equal(ctrl_sync.step(make_observation(), None), torch.zeros(1, 6))
 
 
 def test_user_command_gives_shared_control_that_blends_towards_the_matching_class():
     prior = HandBuiltPrior(weights=(0.7, 0.3))
     ctrl = SharedController(prior)
-    user = torch.tensor([0.27, 0.0, 0.0, 0.0, 0.0, 0.0])
-    action = ctrl.step(make_observation(), user)
+    user = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    action = ctrl.step(make_observation(), user)[0]
     d = ctrl.last_diagnostics
     assert d.mode == "shared" and not d.ood[0]
     assert d.class_weights[0, 1] > 0.9 > d.prior_class_weights[0, 1]
@@ -510,8 +509,8 @@ def test_ood_gate_hands_control_to_user_for_three_steps_then_gives_it_back():
     prior = HandBuiltPrior()
     ctrl = SharedController(prior, SharedControlConfig(ood_steps=3, adapt_user_covariance=False))
     obs = make_observation()
-    far = torch.tensor([0.0, 0.0, 0.4, 0.0, 0.0, 0.0])  # orthogonal to both classes
-    near = torch.tensor([0.27, 0.0, 0.0, 0.0, 0.0, 0.0])
+    far = torch.tensor([[0.0, 0.0, 0.4, 0.0, 0.0, 0.0]])  # orthogonal to both classes
+    near = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.0]])
     action = ctrl.step(obs, far)
     d = ctrl.last_diagnostics
     assert d.mode == "user_only" and d.ood[0]
@@ -534,7 +533,7 @@ def test_ood_gate_hands_control_to_user_for_three_steps_then_gives_it_back():
 
 def test_velocity_limits_clamp_the_norms():
     ctrl = SharedController(HandBuiltPrior(), SharedControlConfig(max_linear_speed=0.05, max_angular_speed=0.1))
-    action = ctrl.step(make_observation(), None)  # prior: |v| = 0.3, |w| = 0.6
+    action = ctrl.step(make_observation(), None)[0]  # prior: |v| = 0.3, |w| = 0.6
     assert action[:3].norm() == pytest.approx(0.05, rel=1e-5)
     assert action[3:].norm() == pytest.approx(0.1, rel=1e-5)
     torch.testing.assert_close(action[:3] / action[:3].norm(), torch.tensor([1.0, 0.0, 0.0]))
@@ -543,7 +542,7 @@ def test_velocity_limits_clamp_the_norms():
 def test_the_executed_twist_is_an_ordinary_tensor_callers_may_edit():
     # The step runs under torch.inference_mode; what it hands out must not be an inference tensor.
     ctrl = SharedController(HandBuiltPrior())
-    action = ctrl.step(make_observation(), torch.tensor([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    action = ctrl.step(make_observation(), torch.tensor([[0.1, 0.0, 0.0, 0.0, 0.0, 0.0]]))
     assert not action.is_inference()
     action.mul_(0.5)  # an in-place edit of an inference tensor outside inference mode would raise
     again = ctrl.step(make_observation(), None)  # the controller's state still works outside
@@ -567,9 +566,15 @@ def test_batched_step_mixes_modes_per_element():
 def test_bad_user_input_is_rejected_with_a_clear_error():
     ctrl = SharedController(HandBuiltPrior())
     with pytest.raises(ValueError, match="user_twist contains NaN"):
-        ctrl.step(make_observation(), torch.tensor([0.1, math.nan, 0, 0, 0, 0]))
-    with pytest.raises(ValueError, match=r"user_twist must have shape \(6,\)"):
+        ctrl.step(make_observation(), torch.tensor([[0.1, math.nan, 0, 0, 0, 0]]))
+    with pytest.raises(ValueError, match=r"user_twist must have shape \(1, 6\)"):
         ctrl.step(make_observation(), torch.zeros(5))
+    with pytest.raises(ValueError, match=r"user_twist must have shape \(1, 6\)"):
+        ctrl.step(make_observation(), torch.zeros(6))  # unbatched
+    with pytest.raises(ValueError, match="user_twist must be a floating-point array"):
+        ctrl.step(make_observation(), torch.zeros(1, 6, dtype=torch.int64))
+    with pytest.raises(ValueError, match=r"must be batched \(B, 27\)"):
+        ctrl.step({k: v[0] for k, v in make_observation().items()}, None)
     with pytest.raises(ValueError, match="user_twist must have shape"):
         ctrl.step(make_observation(batch=2), torch.zeros(3, 6))
     with pytest.raises(ValueError, match="observation.state"):
@@ -583,12 +588,12 @@ def test_bad_user_input_is_rejected_with_a_clear_error():
 def test_empty_grasp_set_falls_back_to_user_only_without_calling_the_prior():
     prior = HandBuiltPrior()
     ctrl = SharedController(prior)
-    user = torch.tensor([0.02, 0.0, 0.0, 0.0, 0.0, 0.1])
+    user = torch.tensor([[0.02, 0.0, 0.0, 0.0, 0.0, 0.1]])
     action = ctrl.step(make_observation(grasps=0), user)
     d = ctrl.last_diagnostics
     assert d.mode == "user_only" and bool(d.fallback[0])
     torch.testing.assert_close(action, user)
-    assert torch.equal(ctrl.step(make_observation(grasps=0), None), torch.zeros(6))
+    assert torch.equal(ctrl.step(make_observation(grasps=0), None), torch.zeros(1, 6))
     assert prior.mixture_calls == 0
 
 
@@ -597,7 +602,7 @@ def test_user_covariance_adapts_across_steps():
     obs = make_observation()
     rng = np.random.default_rng(6)
     for _ in range(20):
-        ctrl.step(obs, torch.from_numpy(rng.normal(0.0, 0.01, 6)) + torch.tensor([0.27, 0, 0, 0, 0, 0.54]))
+        ctrl.step(obs, (torch.from_numpy(rng.normal(0.0, 0.01, 6)) + torch.tensor([0.27, 0, 0, 0, 0, 0.54]))[None])
     s_u = ctrl.last_diagnostics.user_trans_cov[0]
     assert torch.diagonal(s_u).mean() < 0.025  # consistent user: trusted more than the initial 0.03
     assert float(torch.linalg.det(s_u)) ** (1 / 3) > 0.01

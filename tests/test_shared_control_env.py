@@ -8,34 +8,26 @@ import numpy as np
 import pytest
 import torch
 
-import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
-from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
-from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
-from rtv3_maniskill.shared_control import make_user
-from rtv3_maniskill.shared_control.benchmark import (
+from rtv3_maniskill.experiments.episodes import EpisodeResult, SharedControlEnv, make_method, run_episode
+from rtv3_maniskill.experiments.shared_benchmark import (
     BenchmarkConfig,
     BenchmarkError,
-    RESULT_FIELDS,
-    _check_config,
     merge_runs,
+    results_store,
     run_benchmark,
     summarize,
     summary_markdown,
 )
-from rtv3_maniskill.shared_control.env_wrapper import (
-    DirectAssistance,
-    EpisodeResult,
-    RTV3Assistance,
-    SharedControlEnv,
-    load_rtv3_policy,
-    make_method,
-    run_episode,
-)
+from rtv3_maniskill.policies.rtv3 import load_policy
+from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
+from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
+from rtv3_maniskill.shared_control import DirectTeleoperation, SharedControlConfig, SharedController, make_user
 from rtv3_maniskill.shared_control.shared_controller import MODES
 from rtv3_maniskill.shared_control.simulated_users import IdealUser
 
 N_POINTS = 512
 MAX_LINEAR, MAX_ANGULAR = 0.3, 1.2  # the pd_ee_twist controller's limits
+LIMITS = (MAX_LINEAR, MAX_ANGULAR)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -78,18 +70,25 @@ class HistorySpy:
         self.policy.reset()
 
 
+def _pregrasp_offset() -> torch.Tensor:
+    """``(4, 4)`` float64: a grasp pose times this is its pre-grasp (5 cm back along the tool z)."""
+    offset = torch.eye(4, dtype=torch.float64)
+    offset[2, 3] = -0.05
+    return offset
+
+
 def _within_limits(twist: torch.Tensor) -> bool:
     return bool(twist[:3].norm() <= MAX_LINEAR + 1e-6 and twist[3:].norm() <= MAX_ANGULAR + 1e-6)
 
 
 def test_direct_passes_the_user_twist_through(env):
-    env.method = make_method("direct")
+    env.method = make_method("direct", LIMITS)
     env.reset(seed=2)
     command = torch.tensor([0.08, -0.04, 0.06, 0.3, -0.2, 0.4], dtype=torch.float64)
     realised = []
     for _ in range(12):
         obs, _, _, _, info = env.step(command)
-        assert torch.equal(info["robot_twist"], command)
+        torch.testing.assert_close(info["robot_twist"], command, atol=1e-7, rtol=1e-7)
         assert torch.equal(info["user_twist"], command)
         assert info["assistance_mode"] == "user_only"
         realised.append(obs["extra"]["tcp_twist"][0])
@@ -98,19 +97,23 @@ def test_direct_passes_the_user_twist_through(env):
 
 
 def test_ho_assists_towards_the_grasp_goals(env):
-    env.method = make_method("ho")
+    env.method = make_method("ho", LIMITS)
     env.reset(seed=5)
     count = int(env.base.grasps_mask[0].sum())
-    assert env.method.ho.num_goals == count  # one goal per valid grasp (pre-grasp + its twin)
-    assert env.method.ho.targets.shape == (2 * count, 4, 4)
     user = make_user("noisy", seed=1)
     user.reset(env.user_goal())
-    for _ in range(5):
+    for step in range(5):
         _, _, _, _, info = env.step(user(env.base.tcp_pose_matrix[0]))
         twist = info["robot_twist"]
         assert torch.isfinite(twist).all() and _within_limits(twist)
         belief = info["assistance"]["belief"]
         assert belief.shape == (count,) and abs(belief.sum() - 1) < 1e-9
+        if step == 0:  # one goal per valid grasp (its pre-grasp + the pre-grasp's twin)
+            assert env.method.episodes[0].num_goals == count
+            assert env.method.episodes[0].targets.shape == (2 * count, 4, 4)
+            torch.testing.assert_close(env.method.episodes[0].targets[:count],
+                                       env.base.grasp_poses[0, :count].double() @ _pregrasp_offset(), atol=1e-5, rtol=0)
+        assert 0.0 <= info["assistance"]["target_belief"] <= 1.0
     # No user input: HO still moves the robot (the assistance alone).
     _, _, _, _, info = env.step(None)
     assert info["robot_twist"].norm() > 1e-4 and torch.equal(info["user_twist"], torch.zeros(6, dtype=torch.float64))
@@ -118,7 +121,7 @@ def test_ho_assists_towards_the_grasp_goals(env):
 
 def test_rtv3_shared_control_twists_and_diagnostics(env, policy):
     spy = HistorySpy(policy)
-    env.method = RTV3Assistance(spy)
+    env.method = SharedController(spy, SharedControlConfig(max_linear_speed=MAX_LINEAR, max_angular_speed=MAX_ANGULAR))
     env.reset(seed=2)  # the TCP starts > 7 cm from every object: autonomy allowed
     user = make_user("noisy", seed=2)
     user.reset(env.user_goal())
@@ -145,17 +148,15 @@ def test_run_episode_ideal_user_direct_reaches_the_pregrasp(env):
     env.reset(seed=5)
     base = env.base
     count = int(base.grasps_mask[0].sum())
-    offset = torch.eye(4)
-    offset[2, 3] = -0.05
-    target = int((base.grasp_poses[0, :count] @ offset)[:, 2, 3].argmax())
-    result = run_episode(env, DirectAssistance(), make_user("ideal"), max_steps=150, seed=5,
+    target = int((base.grasp_poses[0, :count] @ _pregrasp_offset().float())[:, 2, 3].argmax())
+    result = run_episode(env, DirectTeleoperation(*LIMITS), make_user("ideal"), max_steps=150, seed=5,
                          options=dict(target_grasp_index=target))
     assert result.success, f"final distance {result.final_distance:.3f}"
     assert 0 < result.steps < 150 and result.final_distance < 0.1
     assert result.trajectory.shape == (result.steps + 1, 4, 4) and len(result.diagnostics) == result.steps
     assert int(base.target_grasp_index[0]) == target
     # The same seed reloads the same scene and start: the episode is reproducible.
-    again = run_episode(env, DirectAssistance(), make_user("ideal"), max_steps=150, seed=5,
+    again = run_episode(env, DirectTeleoperation(*LIMITS), make_user("ideal"), max_steps=150, seed=5,
                         options=dict(target_grasp_index=target))
     assert again.steps == result.steps
     np.testing.assert_allclose(again.trajectory, result.trajectory, atol=1e-5)
@@ -172,13 +173,13 @@ class DivingUser(IdealUser):
 
 def test_run_episode_can_end_a_trial_at_the_first_contact(env):
     options = dict(target_grasp_index=0)
-    going_on = run_episode(env, DirectAssistance(), DivingUser(), max_steps=60, seed=5, options=options)
+    going_on = run_episode(env, DirectTeleoperation(*LIMITS), DivingUser(), max_steps=60, seed=5, options=options)
     contacts = [d["collision"] for d in going_on.diagnostics]
     assert any(contacts) and going_on.collision and going_on.outcome == "collision"
     first = contacts.index(True) + 1  # steps up to and including the first contact
     assert going_on.steps == 60 > first
 
-    stopped = run_episode(env, DirectAssistance(), DivingUser(), max_steps=60, seed=5, options=options,
+    stopped = run_episode(env, DirectTeleoperation(*LIMITS), DivingUser(), max_steps=60, seed=5, options=options,
                           stop_on_contact=True)
     assert stopped.steps == first and stopped.outcome == "collision" and not stopped.success
     assert [d["collision"] for d in stopped.diagnostics] == [False] * (first - 1) + [True]
@@ -225,9 +226,10 @@ def test_benchmark_writes_results_and_resumes_without_duplicates(tmp_path):
         assert (tmp_path / name).stat().st_size > 0
     assert "| noisy | HO | 1 |" in (tmp_path / "summary.md").read_text()
 
-    # Simulate an interrupted run: the last trial's row is missing. The rerun adds only it.
+    # Simulate an interrupted run: the last trial's row is torn (half written). It is not a result:
+    # the rerun runs that trial again and writes it whole.
     lines = (tmp_path / "results.csv").read_text().splitlines(keepends=True)
-    (tmp_path / "results.csv").write_text("".join(lines[:-1]))
+    (tmp_path / "results.csv").write_text("".join(lines[:-1]) + lines[-1][: len(lines[-1]) // 2])
     run_benchmark(config, progress=False)
     again = _rows(tmp_path / "results.csv")
     assert [(r["grasp_index"], r["method"]) for r in again] == [(r["grasp_index"], r["method"]) for r in rows]
@@ -244,12 +246,9 @@ def test_benchmark_writes_results_and_resumes_without_duplicates(tmp_path):
 def _finished_run(folder, config, rows):
     """A benchmark output folder as ``run_benchmark`` leaves it: ``config.json`` + ``results.csv``."""
     folder.mkdir()
-    _check_config(folder, config.fingerprint(None))
-    with open(folder / "results.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, RESULT_FIELDS)
-        writer.writeheader()
+    with results_store(folder, config.fingerprint(None)) as store:
         for r in rows:
-            writer.writerow({k: r.get(k, 0) for k in RESULT_FIELDS})
+            store.append({k: r.get(k, 0) for k in store.fields})
 
 
 def _row(scene, method, outcome, steps):
@@ -285,17 +284,18 @@ def _started_rtv3_benchmark(tmp_path, weights: bytes):
     ckpt.mkdir()
     (ckpt / "model.safetensors").write_bytes(weights)
     config = BenchmarkConfig(output=tmp_path / "out", scenes=1, methods=["rtv3"])
-    config.output.mkdir()
-    _check_config(config.output, config.fingerprint(ckpt))
+    _finished_run(config.output, config, [])
+    with results_store(config.output, config.fingerprint(ckpt)) as store:  # one finished trial
+        store.append({k: v for k, v in _row(900000, "rtv3", "success", 30).items()} | {"wall_time_s": 1.0})
     return ckpt, config
 
 
 def test_benchmark_refuses_to_resume_with_other_weights_at_the_same_path(tmp_path):
     ckpt, config = _started_rtv3_benchmark(tmp_path, b"old weights")
-    _check_config(config.output, config.fingerprint(ckpt))  # same weights: resumes
+    results_store(config.output, config.fingerprint(ckpt)).close()  # same weights: resumes
     (ckpt / "model.safetensors").write_bytes(b"new weights")  # retrained in place
     with pytest.raises(BenchmarkError, match="policy_weights_sha256"):
-        _check_config(config.output, config.fingerprint(ckpt))
+        results_store(config.output, config.fingerprint(ckpt))
 
 
 def test_benchmark_refuses_to_resume_with_other_shared_control_settings(tmp_path):
@@ -305,7 +305,7 @@ def test_benchmark_refuses_to_resume_with_other_shared_control_settings(tmp_path
                             shared_control={"ood_covariance": "predictive", "uncommanded_axes": "zero"})
     assert notes.shared_control_config(0.3, 1.2).ood_covariance == "predictive"
     with pytest.raises(BenchmarkError, match="shared_control"):
-        _check_config(notes.output, notes.fingerprint(ckpt))
+        results_store(notes.output, notes.fingerprint(ckpt))
     with pytest.raises(BenchmarkError, match="bad shared_control settings"):
         BenchmarkConfig(output=tmp_path, shared_control={"ood_dofs": "rotation"})
     with pytest.raises(BenchmarkError, match="bad shared_control settings"):
@@ -318,17 +318,17 @@ def test_bad_inputs_give_clear_errors(env, policy, tmp_path):
     with pytest.raises(ValueError, match="unknown simulated user"):
         make_user("telepath")
     with pytest.raises(ValueError, match="unknown assistance method"):
-        make_method("teleport")
+        make_method("teleport", LIMITS)
     with pytest.raises(ValueError, match="needs a policy"):
-        make_method("rtv3")
+        make_method("rtv3", LIMITS)
     with pytest.raises(BenchmarkError, match="unknown simulated user 'telepath'"):
         BenchmarkConfig(output=tmp_path, users=["telepath"])
     with pytest.raises(BenchmarkError, match="unknown assistance method 'teleport'"):
         BenchmarkConfig(output=tmp_path, methods=["direct", "teleport"])
     with pytest.raises(FileNotFoundError, match="--policy.path"):
-        load_rtv3_policy(tmp_path)
+        load_policy(tmp_path)
 
-    env.method = make_method("direct")
+    env.method = make_method("direct", LIMITS)
     env.reset(seed=2)
     with pytest.raises(ValueError, match="NaN"):
         env.step(torch.tensor([0.1, float("nan"), 0, 0, 0, 0]))
@@ -336,7 +336,7 @@ def test_bad_inputs_give_clear_errors(env, policy, tmp_path):
         env.step(torch.zeros(7))
     # A policy made for another cloud size than the env's.
     other = RTV3Policy(RTV3Config(device="cpu", num_points=256))
-    env.method = make_method("rtv3", policy=other)
+    env.method = make_method("rtv3", LIMITS, policy=other)
     with pytest.raises(ValueError, match="num_points"):
         env.reset(seed=2)
 

@@ -13,15 +13,15 @@ import torch
 import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
 from rtv3_maniskill import features as ft
 from rtv3_maniskill import se3
-from rtv3_maniskill.evaluation.planning import context_mask
-from rtv3_maniskill.shared_control.env_wrapper import load_rtv3_policy
+from rtv3_maniskill.experiments.planning import context_mask
+from rtv3_maniskill.policies.rtv3 import load_policy
 from rtv3_maniskill.tasks.grasp_sampler import PREGRASP_DISTANCE
 
 
 @pytest.fixture(scope="module")
 def policy():
     torch.set_num_threads(1)
-    return load_rtv3_policy()
+    return load_policy()
 
 
 def test_shipped_checkpoint_heads_for_the_goal_it_is_given(policy):

@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rtv3_maniskill.shared_control.benchmark import (
+    from rtv3_maniskill.experiments.shared_benchmark import (
         BenchmarkConfig,
         BenchmarkError,
         merge_runs,

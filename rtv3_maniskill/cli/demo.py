@@ -49,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _make_env(want_video: bool, env_kwargs: dict[str, Any]):
     """A SharedControlEnv that renders if it can; returns (env, can_render)."""
-    from rtv3_maniskill.shared_control.env_wrapper import SharedControlEnv
+    from rtv3_maniskill.experiments.episodes import SharedControlEnv
 
     if want_video:
         env = None
@@ -203,8 +203,8 @@ def _outcome(result) -> str:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
-    from rtv3_maniskill.shared_control.env_wrapper import load_rtv3_policy, make_method, run_episode
+    from rtv3_maniskill.experiments.episodes import controller_speed_limits, make_method, run_episode
+    from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
     from rtv3_maniskill.shared_control.simulated_users import make_user
 
     torch.set_num_threads(1)
@@ -215,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     try:
-        policy = load_rtv3_policy(args.policy_path)
+        policy = load_policy(args.policy_path)
     except FileNotFoundError as err:
         raise SystemExit(f"error: {err}") from None
     args.output.mkdir(parents=True, exist_ok=True)
@@ -237,10 +237,11 @@ def run(args: argparse.Namespace) -> int:
           f"target grasp {target}; user '{args.user}' (seed {args.user_seed}){_pause_text(args.pauses)}; "
           f"up to {args.max_steps} steps")
 
-    rtv3 = run_episode(env, make_method("rtv3", policy=policy), make_user(args.user, args.user_seed, pauses=args.pauses),
+    limits = controller_speed_limits(base)
+    rtv3 = run_episode(env, make_method("rtv3", limits, policy=policy), make_user(args.user, args.user_seed, pauses=args.pauses),
                        max_steps=args.max_steps, record_frames=can_render, seed=args.seed, options=options)
     goal_px = _goal_pixels(env) if can_render else None
-    direct = run_episode(env, make_method("direct"), make_user(args.user, args.user_seed, pauses=args.pauses),
+    direct = run_episode(env, make_method("direct", limits), make_user(args.user, args.user_seed, pauses=args.pauses),
                          max_steps=args.max_steps, seed=args.seed, options=options)
     threshold = float(base.success_threshold)
     env.close()

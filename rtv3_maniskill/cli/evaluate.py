@@ -16,7 +16,7 @@ from pathlib import Path
 
 
 def _seed_range(text: str) -> tuple[int, int]:
-    from rtv3_maniskill.evaluation.prediction import parse_seed_range
+    from rtv3_maniskill.experiments.prediction import parse_seed_range
 
     try:
         return parse_seed_range(text)
@@ -72,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _run_prediction(args: argparse.Namespace) -> int:
     import torch
 
-    from rtv3_maniskill.evaluation.prediction import format_table, run_prediction_evaluation
+    from rtv3_maniskill.experiments.prediction import format_table, run_prediction_evaluation
 
     torch.set_num_threads(1)
     try:
@@ -90,7 +90,7 @@ def _run_prediction(args: argparse.Namespace) -> int:
 
 
 def _run_planning(args: argparse.Namespace) -> int:
-    from rtv3_maniskill.evaluation.planning import PlanningConfig, run_planning_benchmark
+    from rtv3_maniskill.experiments.planning import PlanningConfig, run_planning_benchmark
 
     try:
         config = PlanningConfig(

@@ -6,26 +6,34 @@ from typing import Any
 
 import torch
 
-from rtv3_maniskill.shared_control.twist_utils import as_pose, as_twist, check_speed_limits, clamp_twist_speed
+from rtv3_maniskill.shared_control.twist_utils import check_speed_limits, clamp_twist_speed, step_inputs
 
 
 class DirectTeleoperation:
     """Pass the user body twist through, norm-clipped to the velocity limits.
 
-    Same call shape as :class:`HindsightOptimization` so benchmarks can swap them.
+    Args:
+        max_linear_speed, max_angular_speed: norm limits (m/s, rad/s) of the output; None = none.
     """
 
-    def __init__(self, max_linear_speed: float | None = 0.5, max_angular_speed: float | None = 1.5) -> None:
+    name = "direct"
+
+    def __init__(self, max_linear_speed: float | None = 0.3, max_angular_speed: float | None = 1.2) -> None:
         check_speed_limits(max_linear_speed, max_angular_speed)
         self.max_linear_speed = max_linear_speed
         self.max_angular_speed = max_angular_speed
+        self._batch_size = 0
 
     def reset(self) -> None:
-        """Nothing to reset (stateless)."""
+        """Nothing to forget (stateless)."""
+        self._batch_size = 0
 
-    def step(self, ee_pose: Any, user_twist: Any) -> torch.Tensor:
-        """``ee_pose (4, 4)`` (checked, otherwise unused), ``user_twist (6,)`` -> ``(6,)`` float64 twist."""
-        if ee_pose is not None:
-            as_pose(ee_pose)
-        twist = as_twist(user_twist, "user_twist")
-        return clamp_twist_speed(twist, self.max_linear_speed, self.max_angular_speed)
+    def step(self, observation: dict[str, Any], user_twist: Any) -> torch.Tensor:
+        """``observation`` (``observation.state (B, 27)``), ``user_twist (B, 6)`` or None -> ``(B, 6)`` float32."""
+        _, user = step_inputs(observation, user_twist)
+        self._batch_size = user.shape[0]
+        return clamp_twist_speed(user, self.max_linear_speed, self.max_angular_speed)
+
+    def describe(self, index: int = 0) -> dict[str, Any]:
+        """The last step of batch element ``index``: the user alone drives."""
+        return {"mode": "user_only"}

@@ -1,6 +1,6 @@
 """Hindsight Optimization (HO) baseline: Javdani et al. 2018, "Shared autonomy via hindsight optimization".
 
-Written from the published method and the constants in NOTES.md (original code's values):
+Written from the published method and the original constants (docs/PAPER_NOTES.md, "Hindsight Optimization"):
 
 * per goal a Huber cost-to-go on the distance ``d`` (translation: m; rotation: rad,
   quaternion angle, weighted by ``rotation_weight``):
@@ -15,7 +15,7 @@ Written from the published method and the constants in NOTES.md (original code's
 * blend ``u = sum_g p(g) a_g + u_user``.
 
 Several target poses may belong to one goal (``target_groups``); a goal uses its target
-with the smallest ``V`` (NOTES.md). ``variant="rtv3_authors"``: one goal per grasp,
+with the smallest ``V``. ``variant="rtv3_authors"``: one goal per grasp,
 translation-only cost with ``m = 1.5, delta = 0.10, c = 0.1`` (the rotation of the output
 is the user's own).
 
@@ -30,8 +30,16 @@ from typing import Any, Sequence
 
 import torch
 
+from rtv3_maniskill import features
 from rtv3_maniskill.se3 import se3_exp, so3_log
-from rtv3_maniskill.shared_control.twist_utils import as_pose, as_poses, as_twist, check_speed_limits, clamp_twist_speed
+from rtv3_maniskill.shared_control.twist_utils import (
+    as_poses,
+    check_speed_limits,
+    clamp_twist_speed,
+    pregrasp_goals,
+    step_inputs,
+    tcp_poses,
+)
 
 
 @dataclass(frozen=True)
@@ -85,33 +93,17 @@ def _rotation_angle(rot_a: torch.Tensor, rot_b: torch.Tensor) -> torch.Tensor:
     return so3_log(rot_a.transpose(-1, -2) @ rot_b).norm(dim=-1)
 
 
-class HindsightOptimization:
-    """HO shared autonomy over G goals.
+class HindsightGoals:
+    """The goals of one HO episode, the belief over them and their assistance (one robot, float64).
 
     Args:
         goals: ``(N, 4, 4)`` target poses (world), N >= 1.
-        variant: ``"javdani2018"`` (original constants) or ``"rtv3_authors"``.
-        dt: control period (s) of the caller's loop. Kept for reference; the belief update is
-            the original per-step one and the look-ahead uses ``action_apply_time`` (0.1 s).
+        constants: the variant's :class:`HOConstants`.
         target_groups: optional ``(N,)`` goal id of every target (targets with the same id form
-            one goal, e.g. the grasps of one object). Default: every target is its own goal.
-        max_linear_speed, max_angular_speed: optional norm clips of the output.
+            one goal, e.g. a pre-grasp and its pi-about-z twin). Default: every target is a goal.
     """
 
-    def __init__(
-        self,
-        goals: Any,
-        variant: str = "javdani2018",
-        dt: float = 0.05,
-        target_groups: Sequence[int] | None = None,
-        max_linear_speed: float | None = None,
-        max_angular_speed: float | None = None,
-    ) -> None:
-        if variant not in VARIANTS:
-            raise ValueError(f"unknown HO variant {variant!r}; known: {', '.join(VARIANTS)}")
-        if not dt > 0:
-            raise ValueError(f"dt must be positive, got {dt}")
-        check_speed_limits(max_linear_speed, max_angular_speed)
+    def __init__(self, goals: Any, constants: HOConstants, target_groups: Sequence[int] | None = None) -> None:
         self.targets = as_poses(goals, "goals")
         n = self.targets.shape[0]
         if target_groups is None:
@@ -123,11 +115,7 @@ class HindsightOptimization:
         unique, self._group_index = torch.unique(group_ids, return_inverse=True)
         self.goal_ids = unique
         """``(G,)`` goal ids in belief order."""
-        self.variant = variant
-        self.constants = VARIANTS[variant]
-        self.dt = dt
-        self.max_linear_speed = max_linear_speed
-        self.max_angular_speed = max_angular_speed
+        self.constants = constants
         self.reset()
 
     @property
@@ -224,17 +212,13 @@ class HindsightOptimization:
                 out[3:] = magnitude * axis_body
         return out
 
-    def step(self, ee_pose: Any, user_twist: Any) -> torch.Tensor:
-        """Update the belief with the user command and return the blended robot twist.
+    def step(self, pose: torch.Tensor, user: torch.Tensor) -> torch.Tensor:
+        """Update the belief with the user command; return the assistance ``sum_g p(g) a_g (6,)``.
 
         Args:
-            ee_pose: ``(4, 4)`` current EE pose, world.
-            user_twist: ``(6,)`` user body twist ``[v, w]``.
-        Returns:
-            ``(6,)`` float64 body twist ``sum_g p(g) a_g + u_user`` (norm-clipped if limits were set).
+            pose: ``(4, 4)`` float64 current TCP pose, world.
+            user: ``(6,)`` float64 user body twist ``[v, w]``.
         """
-        pose = as_pose(ee_pose)
-        user = as_twist(user_twist, "user_twist")
         k = self.constants
         pose_after = pose @ se3_exp(user * k.action_apply_time)
         values_now = self.target_values(pose)
@@ -246,4 +230,92 @@ class HindsightOptimization:
         for g in range(self.num_goals):
             assistance = assistance + belief[g] * self._assistance(pose, pose_after, self.targets[best[g]])
         self.last_assistance = assistance
-        return clamp_twist_speed(assistance + user, self.max_linear_speed, self.max_angular_speed)
+        return assistance
+
+
+class HindsightOptimization:
+    """Hindsight Optimization shared autonomy (paper baseline "HO").
+
+    The goals are the pre-grasps of the observation's valid grasp candidates, each with its
+    pi-about-z twin as a second target of the same goal, read at the first step after
+    :meth:`reset`; or fixed world ``goals`` given here.
+
+    Args:
+        variant: ``"rtv3_authors"`` (the RT-V3 paper's baseline: translation-only cost) or
+            ``"javdani2018"`` (the original constants, rotation included).
+        max_linear_speed, max_angular_speed: norm limits (m/s, rad/s) of the output; None = none.
+        goals: optional ``(N, 4, 4)`` fixed target poses (world) instead of the grasps.
+        target_groups: optional ``(N,)`` goal id of each fixed target.
+    """
+
+    name = "ho"
+
+    def __init__(self, variant: str = "rtv3_authors", max_linear_speed: float | None = 0.3,
+                 max_angular_speed: float | None = 1.2, goals: Any = None,
+                 target_groups: Sequence[int] | None = None) -> None:
+        if variant not in VARIANTS:
+            raise ValueError(f"unknown HO variant {variant!r}; known: {', '.join(VARIANTS)}")
+        check_speed_limits(max_linear_speed, max_angular_speed)
+        self.variant = variant
+        self.constants = VARIANTS[variant]
+        self.max_linear_speed = max_linear_speed
+        self.max_angular_speed = max_angular_speed
+        self._fixed = None
+        if goals is not None:
+            self._fixed = (as_poses(goals, "goals"), target_groups)
+            HindsightGoals(*self._fixed[:1], self.constants, target_groups)  # checks them now
+        self.episodes: list[HindsightGoals] = []
+        """One :class:`HindsightGoals` per batch element, made at the first step after reset."""
+
+    def reset(self) -> None:
+        """Forget the goals and their belief (a new episode)."""
+        self.episodes = []
+
+    def _start(self, observation: dict[str, Any], b: int) -> None:
+        if self._fixed is not None:
+            self.episodes = [HindsightGoals(self._fixed[0], self.constants, self._fixed[1]) for _ in range(b)]
+            return
+        for key in (features.GRASPS, features.GRASPS_MASK):
+            if key not in observation:
+                raise ValueError(f"observation lacks {key!r}: HO takes its goals from the grasp candidates")
+        grasps = features.unflatten(features.GRASPS, torch.as_tensor(observation[features.GRASPS]))
+        mask = torch.as_tensor(observation[features.GRASPS_MASK])
+        self.episodes = []
+        for i in range(b):
+            goals, groups = pregrasp_goals(grasps[i], mask[i])
+            self.episodes.append(HindsightGoals(goals, self.constants, groups.tolist()))
+
+    def step(self, observation: dict[str, Any], user_twist: Any) -> torch.Tensor:
+        """Update each goal belief with the user command; return ``sum_g p(g) a_g + u_user``
+        (norm-clipped) ``(B, 6)`` float32.
+
+        Args:
+            observation: feature dict with ``observation.state (B, 27)`` and, unless fixed goals
+                were given, ``observation.grasps (B, M, 9)`` + ``observation.grasps_mask (B, M)``.
+            user_twist: ``(B, 6)`` user body twist, or None (no input).
+        """
+        state, user = step_inputs(observation, user_twist)
+        b = state.shape[0]
+        if not self.episodes:
+            self._start(observation, b)
+        elif len(self.episodes) != b:
+            raise ValueError(f"batch size changed from {len(self.episodes)} to {b} without reset()")
+        poses = tcp_poses(state)
+        user64 = user.double()
+        assistance = torch.stack([episode.step(poses[i], user64[i]) for i, episode in enumerate(self.episodes)])
+        out = clamp_twist_speed(assistance + user64, self.max_linear_speed, self.max_angular_speed)
+        return out.float()
+
+    def describe(self, index: int = 0) -> dict[str, Any]:
+        """The last step of batch element ``index``: goal ids, belief, most likely goal, assistance."""
+        if not self.episodes:
+            return {"mode": "shared"}
+        episode = self.episodes[index]
+        belief = episode.belief
+        return {
+            "mode": "shared",
+            "belief": belief.numpy().copy(),
+            "goal_ids": episode.goal_ids.numpy().copy(),
+            "most_likely_goal": int(episode.goal_ids[int(belief.argmax())]),
+            "assistance": episode.last_assistance.numpy().copy(),
+        }

@@ -16,7 +16,7 @@ Per step and batch element, one of three modes (``SharedControlDiagnostics.modes
   control for the final approach), (b) in the out-of-distribution window: the command's
   observed axes are farther than ``chi2.ppf(ood_alpha, d)`` (squared Mahalanobis under the
   class covariances, ``d`` observed axes; :func:`posterior.is_out_of_distribution` for the
-  NOTES.md variants) from every class -> this step and the next ``ood_steps`` steps, class
+  variants in docs/PAPER_NOTES.md) from every class -> this step and the next ``ood_steps`` steps, class
   weights kept at the prior's (no re-weighting with an OOD command); a new OOD command
   inside the window restarts it, (c) the documented fallback for an empty grasp set:
   with no candidate grasps the prior has nothing to condition on, so the policy is not
@@ -36,7 +36,7 @@ import torch
 
 from rtv3_maniskill import features
 from rtv3_maniskill.shared_control import posterior
-from rtv3_maniskill.shared_control.twist_utils import as_twist, check_speed_limits, clamp_twist_speed
+from rtv3_maniskill.shared_control.twist_utils import check_speed_limits, clamp_twist_speed, step_inputs
 from rtv3_maniskill.twist_mixture import TwistMixture
 
 MODES = ("shared", "autonomous", "user_only")
@@ -190,7 +190,7 @@ def surface_distance(observation: dict[str, Any]) -> torch.Tensor:
     b = ee.shape[0]
     if features.POINT_CLOUD not in observation:
         return torch.full((b,), math.inf, dtype=torch.float64)
-    cloud = torch.as_tensor(observation[features.POINT_CLOUD])
+    cloud = features.unflatten(features.POINT_CLOUD, torch.as_tensor(observation[features.POINT_CLOUD]))
     cloud = (cloud[None] if cloud.ndim == 2 else cloud)[..., :3].double()
     if cloud.shape[0] != b:
         raise ValueError(f"{features.POINT_CLOUD} has batch {cloud.shape[0]}, state has {b}")
@@ -218,10 +218,15 @@ def most_likely_twist(prior: posterior.FactorizedTwistMixture) -> torch.Tensor:
 class SharedController:
     """RT-V3 shared control around a learned prior (see the module docstring for the modes).
 
+    The same interface as every assistance method: ``reset()``, ``step(observation, user_twist)``
+    and ``describe(index)``.
+
     Args:
         policy: has ``predict_step0_mixture(obs) -> TwistMixture`` (called once per step) and ``reset()``.
         config: :class:`SharedControlConfig`.
     """
+
+    name = "rtv3"
 
     def __init__(self, policy: StepZeroPrior, config: SharedControlConfig | None = None) -> None:
         for name in ("predict_step0_mixture", "reset"):
@@ -263,13 +268,12 @@ class SharedController:
         """One control step.
 
         Args:
-            observation: feature dict (``rtv3_maniskill.features``); needs ``observation.state``
-                ``(27,)`` or ``(B, 27)``; ``observation.point_cloud`` (+ mask) for the autonomy
+            observation: feature dict (``rtv3_maniskill.features``), batched: needs
+                ``observation.state (B, 27)``; ``observation.point_cloud`` (+ mask) for the autonomy
                 cutoff and ``observation.grasps_mask`` for the empty-grasp fallback are optional.
-            user_twist: ``(6,)`` or ``(B, 6)`` body twist ``[v, w]`` of the user, or None (no
-                command). A ``(6,)`` twist with a batched observation applies to every element.
+            user_twist: ``(B, 6)`` body twist ``[v, w]`` of the user, or None (no command).
         Returns:
-            ``(6,)`` (unbatched state) or ``(B, 6)`` robot body twist, EE frame.
+            ``(B, 6)`` float32 robot body twist, TCP frame.
         """
         # A step is ~1,500 small tensor operations: inference mode spares each its autograd and
         # version-counter bookkeeping. The twist handed out is an ordinary tensor again.
@@ -279,18 +283,9 @@ class SharedController:
 
     def _step(self, observation: dict[str, torch.Tensor], user_twist: torch.Tensor | None) -> torch.Tensor:
         c = self.config
-        if features.STATE not in observation:
-            raise ValueError(f"observation lacks {features.STATE!r} (needed for the EE position)")
-        state = torch.as_tensor(observation[features.STATE])
-        if state.ndim not in (1, 2) or state.shape[-1] != features.STATE_DIM:
-            raise ValueError(f"{features.STATE} must be ({features.STATE_DIM},) or (B, {features.STATE_DIM}), got {tuple(state.shape)}")
-        unbatched = state.ndim == 1
-        b = 1 if unbatched else state.shape[0]
-        if user_twist is None:
-            user = torch.zeros(b, 6, dtype=torch.float64)
-        else:
-            user = as_twist(user_twist, "user_twist", batch_size=b)
-            user = user.expand(b, 6).clone() if user.ndim == 1 else user
+        _, user32 = step_inputs(observation, user_twist)
+        user = user32.double()
+        b = user.shape[0]
         self._init_batch(b)
         assert self._user_cov is not None
         active = user.norm(dim=-1) > c.input_threshold
@@ -369,5 +364,22 @@ class SharedController:
             fallback=no_grasps,
             mixture=shown,
         )
-        out_dtype = torch.float32
-        return action[0].to(out_dtype) if unbatched else action.to(out_dtype)
+        return action.float()
+
+    def describe(self, index: int = 0) -> dict[str, Any]:
+        """The last step of batch element ``index``: mode, class weights (posterior where shared,
+        the prior's otherwise), the prior's weights, entropy bounds, OOD flag, surface distance."""
+        d = self.last_diagnostics
+        if d is None:
+            return {"mode": ""}
+        return {
+            "mode": d.modes[index],
+            "class_weights": d.class_weights[index].numpy().copy(),
+            "prior_class_weights": d.prior_class_weights[index].numpy().copy(),
+            "trans_entropy_lower": float(d.trans_entropy_lower[index]),
+            "trans_entropy_upper": float(d.trans_entropy_upper[index]),
+            "rot_entropy_lower": float(d.rot_entropy_lower[index]),
+            "rot_entropy_upper": float(d.rot_entropy_upper[index]),
+            "ood": bool(d.ood[index]),
+            "surface_distance": float(d.surface_distance[index]),
+        }

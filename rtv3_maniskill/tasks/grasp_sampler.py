@@ -39,6 +39,7 @@ import numpy as np
 import torch
 import trimesh
 
+from rtv3_maniskill.features import PREGRASP_DISTANCE
 from rtv3_maniskill.se3 import matrix_to_quat, rotate_about_z, translate_along_z
 from rtv3_maniskill.tasks.panda_hand import (
     FINGER_DEPTH,
@@ -58,7 +59,6 @@ FRICTION_COEFFICIENT = 0.5
 NUM_YAWS = 6
 DEPTH_RANGE = (-0.1, 1.1)
 """Grasp depth range in units of FINGER_DEPTH (VGN)."""
-PREGRASP_DISTANCE = 0.05
 REST_TCP_ROTATION = np.diag([1.0, -1.0, -1.0])
 """World rotation of the Panda's TCP at ManiSkill's ``rest`` keyframe (base at the world
 origin's orientation): pointing down, x away from the robot. Reference for canonicalising."""

@@ -11,9 +11,11 @@ from __future__ import annotations
 
 from typing import Any
 
+from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT, load_policy
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 
-__all__ = ["RTV3Config", "RTV3Policy", "RTV3Model", "make_rtv3_pre_post_processors"]
+__all__ = ["RTV3Config", "RTV3Policy", "RTV3Model", "SHIPPED_CHECKPOINT", "load_policy",
+           "make_rtv3_pre_post_processors"]
 
 
 def __getattr__(name: str) -> Any:

@@ -44,15 +44,16 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import torch
 
-from rtv3_maniskill import features as ft
-from rtv3_maniskill import se3
-from rtv3_maniskill.tasks.grasp_clutter import PREGRASP_DISTANCE
+from rtv3_maniskill import features, se3
+from rtv3_maniskill.features import PREGRASP_DISTANCE
+from rtv3_maniskill.records import SCENE_SEED_STRIDE, RecordStore, scene_seeds, select_targets
 
 PLANNING_SUCCESS_THRESHOLD = 0.2
 """Pose distance (m + (0.3/pi) rad, L1) below which a pre-grasp counts as reached (NOTES.md)."""
 PLANNING_MAX_STEPS = 150
 """7.5 s at 20 Hz."""
-SCENE_SEED_STRIDE = 100000
+TARGET_SALT = 29
+"""Salt of the seeded target choice (:func:`rtv3_maniskill.records.select_targets`) of planning runs."""
 MAX_GRASPS_GUESS = 16
 """Progress-bar estimate of the targets per scene when every grasp is a target."""
 OUTCOMES = ("success", "collision", "timeout")
@@ -122,20 +123,6 @@ def trial_outcome(collision: bool, success: bool) -> str | None:
 # ----------------------------------------------------------------------------- trials
 
 
-def scene_seeds(seed: int, scenes: int) -> list[int]:
-    """Scene ``i`` -> seed ``seed * 100000 + i``."""
-    return [seed * SCENE_SEED_STRIDE + i for i in range(scenes)]
-
-
-def select_targets(valid: Sequence[int], cap: int | None, seed: int, scene_seed: int) -> list[int]:
-    """All valid grasp indices, or a seeded random subset of ``cap`` of them (sorted)."""
-    valid = sorted(int(v) for v in valid)
-    if cap is None or cap >= len(valid):
-        return valid
-    rng = np.random.default_rng([seed, scene_seed, 29])
-    return sorted(int(i) for i in rng.choice(valid, size=cap, replace=False))
-
-
 def context_mask(grasps_mask: torch.Tensor, target: int, context: str) -> torch.Tensor:
     """``observation.grasps_mask (B, M)`` the policy sees: only ``target`` (``"target"``) or unchanged (``"all"``)."""
     if context not in CONTEXT_MODES:
@@ -193,65 +180,26 @@ class PlanningConfig:
         )
 
 
-class TrialsFile:
-    """``planning_trials.csv``: one row per finished trial, flushed at once; keys of finished trials."""
+def _is_complete_trial(row: dict[str, str]) -> bool:
+    """A trial row with every column a finished trial writes (others are torn)."""
+    if row["outcome"] not in (*OUTCOMES, NO_START_POSE) or row["wall_time_s"] == "":
+        return False
+    try:
+        int(row["scene_seed"]), int(row["grasp_index"]), int(row["steps"])
+    except ValueError:
+        return False
+    return True
 
-    def __init__(self, path: Path) -> None:
-        self.path = Path(path)
-        self.rows: dict[tuple[int, int], dict[str, str]] = {}
-        if self.path.exists() and self.path.stat().st_size > 0:
-            with open(self.path, newline="") as f:
-                header = next(csv.reader(f), [])
-            if tuple(header) != TRIAL_FIELDS:
-                raise ValueError(
-                    f"{self.path} has the columns {header}, expected {list(TRIAL_FIELDS)} "
-                    "(written by another version?): use another --output folder"
-                )
-            for row in read_trials(self.path):
-                self.rows[(int(row["scene_seed"]), int(row["grasp_index"]))] = row
-        new = not self.path.exists() or self.path.stat().st_size == 0
-        if not new:
-            with open(self.path, "rb") as f:  # a torn last line (killed run): start on a new line
-                f.seek(-1, os.SEEK_END)
-                torn = f.read(1) != b"\n"
-        self._file = open(self.path, "a", newline="")
-        if not new and torn:
-            self._file.write("\n")
-        self._writer = csv.DictWriter(self._file, fieldnames=TRIAL_FIELDS)
-        if new:
-            self._writer.writeheader()
-            self._flush()
 
-    def _flush(self) -> None:
-        self._file.flush()
-        os.fsync(self._file.fileno())
-
-    def append(self, row: dict[str, Any]) -> None:
-        self._writer.writerow({k: row[k] for k in TRIAL_FIELDS})
-        self._flush()
-        self.rows[(int(row["scene_seed"]), int(row["grasp_index"]))] = {k: str(row[k]) for k in TRIAL_FIELDS}
-
-    def close(self) -> None:
-        self._file.close()
+def trials_store(output: Path, settings: dict[str, Any] | None) -> RecordStore:
+    """``planning_trials.csv`` (one row per finished trial) guarded by ``planning_config.json``."""
+    return RecordStore(output / "planning_trials.csv", TRIAL_FIELDS, ("scene_seed", "grasp_index"), settings,
+                       settings_path=output / "planning_config.json", is_complete=_is_complete_trial)
 
 
 def read_trials(path: Path) -> list[dict[str, str]]:
     """Complete rows of a trials file (a torn or foreign line is skipped)."""
-    rows = []
-    with open(path, newline="") as f:
-        for row in csv.DictReader(f):
-            if None in row or None in row.values():  # torn line: missing or extra fields
-                continue
-            if any(row[k] == "" for k in ("scene_seed", "grasp_index", "outcome", "steps", "wall_time_s")):
-                continue
-            if row["outcome"] not in (*OUTCOMES, NO_START_POSE):
-                continue
-            try:
-                int(row["scene_seed"]), int(row["grasp_index"]), int(row["steps"])
-            except ValueError:
-                continue
-            rows.append(row)
-    return rows
+    return RecordStore.read(path, TRIAL_FIELDS, _is_complete_trial)
 
 
 def summarize(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
@@ -272,47 +220,13 @@ def summarize(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
     )
 
 
-class SceneIndex:
-    """``planning_scenes.jsonl``: the valid grasp indices of every scene built so far, so that a
-    resumed run picks the same targets without building finished scenes again."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = Path(path)
-        self.valid: dict[int, list[int]] = {}
-        if self.path.exists():
-            for line in self.path.read_text().splitlines():
-                try:
-                    record = json.loads(line)
-                    self.valid[int(record["scene_seed"])] = [int(g) for g in record["valid_grasps"]]
-                except (json.JSONDecodeError, KeyError, TypeError, ValueError):
-                    continue  # a torn last line
-
-    def get(self, scene_seed: int) -> list[int] | None:
-        return self.valid.get(int(scene_seed))
-
-    def add(self, scene_seed: int, valid: Sequence[int]) -> None:
-        self.valid[int(scene_seed)] = [int(g) for g in valid]
-        torn = self.path.exists() and self.path.stat().st_size > 0 and not self.path.read_bytes().endswith(b"\n")
-        with open(self.path, "a") as f:
-            record = json.dumps(dict(scene_seed=int(scene_seed), valid_grasps=self.valid[int(scene_seed)]))
-            f.write(("\n" if torn else "") + record + "\n")
-            f.flush()
-            os.fsync(f.fileno())
+SCENE_FIELDS = ("scene_seed", "valid_grasps")
 
 
-def _check_config(output: Path, fingerprint: dict[str, Any]) -> None:
-    path = output / "planning_config.json"
-    if path.exists():
-        existing = json.loads(path.read_text())
-        if existing != fingerprint:
-            keys = set(existing) | set(fingerprint)
-            diff = {k: (existing.get(k), fingerprint.get(k)) for k in keys if existing.get(k) != fingerprint.get(k)}
-            raise ValueError(
-                f"{output} holds planning trials run with other settings {diff} (existing, requested); "
-                "use another --output folder or the same settings to resume"
-            )
-        return
-    path.write_text(json.dumps(fingerprint, indent=2))
+def scene_index(output: Path, settings: dict[str, Any]) -> RecordStore:
+    """``planning_scenes.csv``: the valid grasp indices (space-separated) of every scene built so
+    far, so that a resumed run picks the same targets without building finished scenes again."""
+    return RecordStore(output / "planning_scenes.csv", SCENE_FIELDS, ("scene_seed",), settings)
 
 
 # ----------------------------------------------------------------------------- running
@@ -343,11 +257,11 @@ class PlanningBenchmark:
     def _make_env(self):
         import gymnasium as gym
 
-        import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
+        from rtv3_maniskill import ENV_ID
 
         config, policy = self.config, self.policy
         return gym.make(
-            "GraspClutter-v1",
+            ENV_ID,
             obs_mode="state_dict",
             control_mode="pd_ee_twist",
             scene_type=config.scene_type,
@@ -370,17 +284,17 @@ class PlanningBenchmark:
                 raise ValueError(
                     "--point-cloud rendered: the scene cannot render, so there is no depth-camera point cloud; "
                     "use --point-cloud mesh "
-                    "(only if the policy was trained on mesh clouds) or set up a Vulkan driver (STACK.md)"
+                    "(only if the policy was trained on mesh clouds) or set up a Vulkan driver (scripts/setup.sh installs a software one)"
                 )
             self._cloud = self.base.capture_point_cloud()
         return torch.nonzero(self.base.grasps_mask[0] > 0.5).flatten().tolist()
 
     def _observation(self, obs: dict, target: int) -> dict[str, torch.Tensor]:
-        observation = ft.observation_from_env(obs)
+        observation = features.observation_from_env(obs)
         if self._cloud is not None:
-            observation[ft.POINT_CLOUD] = self._cloud[0].float()
-            observation[ft.POINT_CLOUD_MASK] = self._cloud[1].float()
-        observation[ft.GRASPS_MASK] = context_mask(observation[ft.GRASPS_MASK], target, self.config.context)
+            observation[features.POINT_CLOUD] = self._cloud[0].float()
+            observation[features.POINT_CLOUD_MASK] = self._cloud[1].float()
+        observation[features.GRASPS_MASK] = context_mask(observation[features.GRASPS_MASK], target, self.config.context)
         return observation
 
     def start_configuration(self, grasp: int, context_poses: torch.Tensor) -> tuple[np.ndarray | None, int]:
@@ -465,7 +379,7 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
     """
     from tqdm import tqdm
 
-    from rtv3_maniskill.evaluation.prediction import load_policy
+    from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
 
     torch.set_num_threads(1)
     if policy is None:
@@ -474,37 +388,39 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
         policy = load_policy(config.policy_path)
     output = config.output
     output.mkdir(parents=True, exist_ok=True)
-    _check_config(output, config.fingerprint())
-    trials = TrialsFile(output / "planning_trials.csv")
-    scene_index = SceneIndex(output / "planning_scenes.jsonl")
+    trials = trials_store(output, config.fingerprint())
+    scenes = scene_index(output, config.fingerprint())
     bench = PlanningBenchmark(config, policy)
     keys: list[tuple[int, int]] = []
     per_scene = config.max_grasps_per_scene or MAX_GRASPS_GUESS
     bar = tqdm(total=config.scenes * per_scene, unit="trial", desc="planning", disable=not progress, dynamic_ncols=True)
     try:
         for scene_seed in scene_seeds(config.seed, config.scenes):
-            valid = scene_index.get(scene_seed)
-            if valid is None:
+            known = scenes.get((scene_seed,))
+            if known is None:
                 valid = bench.load_scene(scene_seed)
-                scene_index.add(scene_seed, valid)
-            targets = select_targets(valid, config.max_grasps_per_scene, config.seed, scene_seed)
+                scenes.append(dict(scene_seed=scene_seed, valid_grasps=" ".join(str(g) for g in valid)))
+            else:
+                valid = [int(g) for g in known["valid_grasps"].split()]
+            targets = select_targets(valid, config.max_grasps_per_scene, config.seed, scene_seed, salt=TARGET_SALT)
             bar.total += len(targets) - per_scene  # the estimate made before the scene was known
             bar.refresh()
             for g in targets:
                 keys.append((scene_seed, g))
-                if (scene_seed, g) not in trials.rows:
+                if (scene_seed, g) not in trials:
                     if bench.scene_seed != scene_seed:
                         bench.load_scene(scene_seed)
                     trials.append(bench.run_trial(g))
                 bar.update(1)
-                stats = summarize(trials.rows[k] for k in keys)
+                stats = summarize(trials.get(k) for k in keys)
                 if stats["trials"]:  # rates exist
                     bar.set_postfix({k: f"{100 * stats[k]:.0f}%" for k in ("SR", "CR", "TOR")})
     finally:
         bar.close()
         trials.close()
+        scenes.close()
         bench.close()
-    summary = summarize(trials.rows[k] for k in keys)
+    summary = summarize(trials.get(k) for k in keys)
     summary.update(
         scenes=config.scenes,
         scene_seed_range=[config.seed * SCENE_SEED_STRIDE, config.seed * SCENE_SEED_STRIDE + config.scenes - 1],

@@ -38,6 +38,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from rtv3_maniskill.records import RecordStore, SettingsMismatch, scene_seeds, select_targets
+
 RESULT_FIELDS = (
     "scene_seed", "grasp_index", "user", "method", "outcome", "success", "collision", "steps",
     "final_distance", "autonomous_steps", "user_only_steps", "user_seed", "wall_time_s",
@@ -46,7 +48,9 @@ SUMMARY_FIELDS = ("user", "method", "trials", "SR", "CR", "TOR", "reached", "mea
 DEFAULT_USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
 DEFAULT_METHODS = ("direct", "ho", "rtv3")
 METHOD_LABELS = {"direct": "Direct", "ho": "HO", "rtv3": "RT-V3"}
-SCENE_SEED_STRIDE = 100000
+TARGET_SALT = 17
+"""Salt of the seeded goal choice (:func:`rtv3_maniskill.records.select_targets`) of benchmark runs."""
+RESULT_KEY = ("scene_seed", "grasp_index", "user", "method")
 _SPEED_LIMIT_FIELDS = ("max_linear_speed", "max_angular_speed")
 """SharedControlConfig fields the benchmark takes from the env's controller, not from its settings."""
 
@@ -81,7 +85,7 @@ class BenchmarkConfig:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        from rtv3_maniskill.shared_control.env_wrapper import METHOD_NAMES
+        from rtv3_maniskill.shared_control.assistance import METHOD_NAMES
         from rtv3_maniskill.shared_control.hindsight_optimization import VARIANTS
         from rtv3_maniskill.shared_control.simulated_users import USERS
 
@@ -136,7 +140,7 @@ class BenchmarkConfig:
         return settings
 
     def scene_seeds(self) -> list[int]:
-        return [self.seed * SCENE_SEED_STRIDE + i for i in range(self.scenes)]
+        return scene_seeds(self.seed, self.scenes)
 
     def fingerprint(self, policy_path: Path | None) -> dict[str, Any]:
         """Settings that change every trial's outcome: a resumed run must match them. The policy
@@ -172,59 +176,33 @@ def user_seed(seed: int, scene_seed: int, grasp_index: int, user: str) -> int:
     return int(np.random.SeedSequence([seed, scene_seed, grasp_index, zlib.crc32(user.encode())]).generate_state(1)[0])
 
 
-def select_grasps(valid: Sequence[int], cap: int | None, seed: int, scene_seed: int) -> list[int]:
-    """All valid grasp indices, or a seeded random subset of ``cap`` of them (sorted)."""
-    valid = list(valid)
-    if cap is None or cap >= len(valid):
-        return valid
-    rng = np.random.default_rng([seed, scene_seed, 17])
-    return sorted(int(i) for i in rng.choice(valid, size=cap, replace=False))
-
-
 # ----------------------------------------------------------------------------- results file
 
 
-def _result_rows(path: Path, hint: str = "") -> list[dict[str, str]]:
-    """The rows of a ``results.csv`` as read (strings), after checking its columns are this benchmark's."""
-    with Path(path).open(newline="") as f:
-        reader = csv.DictReader(f)
-        if tuple(reader.fieldnames or ()) != RESULT_FIELDS:
-            raise BenchmarkError(f"{path} has columns {reader.fieldnames}, expected {list(RESULT_FIELDS)}: "
-                                 f"not a results file of this benchmark{hint}")
-        return list(reader)
+def _is_complete_result(row: dict[str, str]) -> bool:
+    return row["outcome"] in ("success", "collision", "timeout") and row["wall_time_s"] != ""
 
 
-class ResultsFile:
-    """``results.csv``: one row per finished trial, flushed at once; keys of finished trials."""
+def results_store(output: Path, settings: dict[str, Any] | None) -> RecordStore:
+    """``results.csv``: one row per finished trial, guarded by ``config.json``."""
+    try:
+        return RecordStore(output / "results.csv", RESULT_FIELDS, RESULT_KEY, settings,
+                           settings_path=output / "config.json", is_complete=_is_complete_result)
+    except SettingsMismatch as err:
+        raise BenchmarkError(str(err)) from None
+    except ValueError as err:
+        raise BenchmarkError(f"{err}; choose another --output") from None
 
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.done: set[tuple[int, int, str, str]] = set()
-        if path.exists() and path.stat().st_size > 0:
-            self.done = {self.key(row) for row in _result_rows(path, "; choose another --output")}
-            self._file = path.open("a", newline="")
-            self._writer = csv.DictWriter(self._file, RESULT_FIELDS)
-        else:
-            self._file = path.open("w", newline="")
-            self._writer = csv.DictWriter(self._file, RESULT_FIELDS)
-            self._writer.writeheader()
-            self._file.flush()
 
-    @staticmethod
-    def key(row: dict[str, Any]) -> tuple[int, int, str, str]:
-        return int(row["scene_seed"]), int(row["grasp_index"]), str(row["user"]), str(row["method"])
-
-    def append(self, row: dict[str, Any]) -> None:
-        self._writer.writerow(row)
-        self._file.flush()
-        self.done.add(self.key(row))
-
-    def close(self) -> None:
-        self._file.close()
+def _result_rows(path: Path) -> list[dict[str, str]]:
+    try:
+        return RecordStore.read(path, RESULT_FIELDS, _is_complete_result)
+    except ValueError as err:
+        raise BenchmarkError(str(err)) from None
 
 
 def read_results(path: Path) -> list[dict[str, Any]]:
-    """Rows of ``results.csv`` with numbers parsed."""
+    """Rows of ``results.csv`` with numbers parsed (a torn last row is left out)."""
     return [{
         **row,
         "scene_seed": int(row["scene_seed"]), "grasp_index": int(row["grasp_index"]),
@@ -374,7 +352,7 @@ def merge_runs(sources: Sequence[Path], output: Path) -> list[dict[str, Any]]:
             settings.setdefault(key, value)
             origin.setdefault(key, folder)
         for row in _result_rows(results_path):
-            key = ResultsFile.key(row)
+            key = tuple(row[k] for k in RESULT_KEY)
             if key in seen:
                 raise BenchmarkError(f"trial {key} is in both {seen[key]} and {folder}; merge runs of disjoint "
                                      "users or methods")
@@ -392,30 +370,13 @@ def merge_runs(sources: Sequence[Path], output: Path) -> list[dict[str, Any]]:
 # ----------------------------------------------------------------------------- the run
 
 
-def _check_config(output: Path, fingerprint: dict[str, Any]) -> None:
-    path = output / "config.json"
-    if path.exists():
-        previous = json.loads(path.read_text())
-        changed = {k: (previous.get(k), v) for k, v in fingerprint.items() if previous.get(k) != v}
-        if changed:
-            detail = "; ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in changed.items())
-            raise BenchmarkError(f"{output} holds results made with other settings ({detail}); use another --output")
-    path.write_text(json.dumps(fingerprint, indent=2))
-
-
 def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = True) -> list[dict[str, Any]]:
     """Run (or resume) the benchmark; returns the summary rows. ``policy`` overrides ``policy_path``."""
     import torch
     from tqdm import tqdm
 
-    from rtv3_maniskill.shared_control.env_wrapper import (
-        DEFAULT_POLICY_PATH,
-        controller_speed_limits,
-        SharedControlEnv,
-        load_rtv3_policy,
-        make_method,
-        run_episode,
-    )
+    from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_speed_limits, make_method, run_episode
+    from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT, load_policy
     from rtv3_maniskill.shared_control.simulated_users import make_user
 
     torch.set_num_threads(1)
@@ -424,19 +385,19 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     need_policy = "rtv3" in config.methods
     policy_path = None
     if need_policy and policy is None:
-        policy_path = Path(config.policy_path) if config.policy_path is not None else DEFAULT_POLICY_PATH
-        policy = load_rtv3_policy(policy_path)  # clear error when missing
+        policy_path = Path(config.policy_path) if config.policy_path is not None else SHIPPED_CHECKPOINT
+        policy = load_policy(policy_path)  # clear error when missing
     elif need_policy and config.policy_path is not None:
         policy_path = Path(config.policy_path)
-    _check_config(output, config.fingerprint(policy_path))
-    results = ResultsFile(output / "results.csv")
+    results = results_store(output, config.fingerprint(policy_path))
 
     env_kwargs: dict[str, Any] = dict(obs_mode=config.obs_mode, scene_type=config.scene_type)
     if policy is not None:
         env_kwargs.update(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps))
     env = SharedControlEnv(rendered_context=config.rendered_context, **env_kwargs)
-    shared_config = config.shared_control_config(*controller_speed_limits(env.base))
-    methods = {m: make_method(m, policy=policy, ho_variant=config.ho_variant, config=shared_config)
+    limits = controller_speed_limits(env.base)
+    shared_config = config.shared_control_config(*limits)
+    methods = {m: make_method(m, limits, policy=policy, ho_variant=config.ho_variant, config=shared_config)
                for m in config.methods}
     per_grasp = len(config.users) * len(config.methods)
     bar = tqdm(total=0, unit="trial", disable=not progress, dynamic_ncols=True)
@@ -445,7 +406,7 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
         for scene_seed in config.scene_seeds():
             env.reset(seed=scene_seed)
             valid = torch.nonzero(env.base.grasps_mask[0] > 0.5).flatten().tolist()
-            grasps = select_grasps(valid, config.max_grasps_per_scene, config.seed, scene_seed)
+            grasps = select_targets(valid, config.max_grasps_per_scene, config.seed, scene_seed, salt=TARGET_SALT)
             bar.total += len(grasps) * per_grasp
             bar.refresh()
             for g in grasps:
@@ -453,7 +414,7 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
                     u_seed = user_seed(config.seed, scene_seed, g, user_name)
                     for method_name, method in methods.items():
                         key = (scene_seed, g, user_name, method_name)
-                        if key in results.done:
+                        if key in results:
                             bar.update(1)
                             continue
                         start = time.perf_counter()

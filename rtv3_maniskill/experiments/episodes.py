@@ -2,17 +2,13 @@
 
 :class:`SharedControlEnv` wraps one CPU ``GraspClutter-v1`` env (``pd_ee_twist``). Its action is
 the USER body twist ``(6,)`` ``[v (m/s), w (rad/s)]`` in the TCP frame, or ``None`` / zeros for
-"no input". Inside, an :class:`AssistanceMethod` turns it into the ROBOT twist sent to the env
-(gripper held open):
-
-* ``"direct"`` (:class:`DirectAssistance`): the user's twist, norm-clipped (paper's "Direct");
-* ``"ho"`` (:class:`HOAssistance`): Hindsight Optimization over one goal per valid grasp
-  candidate (its pre-grasp and the pi-about-z twin, one goal group);
-* ``"rtv3"`` (:class:`RTV3Assistance`): the RT-V3 :class:`SharedController` around a learned prior.
+"no input". Inside, an assistance method of :mod:`rtv3_maniskill.shared_control` (Direct, HO or
+the RT-V3 :class:`SharedController`, see :func:`make_method`) turns it into the ROBOT twist sent
+to the env (gripper held open).
 
 ``info`` gains ``user_twist (6,)``, ``robot_twist (6,)``, ``assistance_mode`` (``"shared"``,
-``"autonomous"`` or ``"user_only"``) and ``assistance`` (the method's diagnostics: for RT-V3
-class weights, entropy bounds, OOD flag; for HO the goal belief).
+``"autonomous"`` or ``"user_only"``) and ``assistance`` (the method's ``describe()``: for RT-V3
+class weights, entropy bounds, OOD flag; for HO the goal belief and the target's share of it).
 
 :func:`run_episode` plays one episode with a simulated user aiming at the episode's target
 pre-grasp and returns an :class:`EpisodeResult`.
@@ -20,60 +16,35 @@ pre-grasp and returns an :class:`EpisodeResult`.
 
 from __future__ import annotations
 
-import math
+import dataclasses
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-from rtv3_maniskill import se3
-from rtv3_maniskill.evaluation.planning import trial_outcome
-from rtv3_maniskill.features import observation_from_env
+from rtv3_maniskill import ENV_ID, features
+from rtv3_maniskill.experiments.planning import trial_outcome
+from rtv3_maniskill.shared_control.assistance import METHOD_NAMES, AssistanceMethod
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
-from rtv3_maniskill.shared_control.hindsight_optimization import VARIANTS as HO_VARIANTS
 from rtv3_maniskill.shared_control.hindsight_optimization import HindsightOptimization
 from rtv3_maniskill.shared_control.shared_controller import SharedControlConfig, SharedController
-from rtv3_maniskill.shared_control.twist_utils import as_twist
-from rtv3_maniskill.tasks.grasp_clutter import PREGRASP_DISTANCE, GraspClutterEnv
+from rtv3_maniskill.tasks.grasp_clutter import GraspClutterEnv
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 
-ENV_ID = "GraspClutter-v1"
 CONTROL_MODE = "pd_ee_twist"
 GRIPPER_OPEN = 1.0
 """Normalised gripper action of ``pd_ee_twist`` that holds the fingers open (0.04 m)."""
-METHOD_NAMES = ("direct", "ho", "rtv3")
-DEFAULT_POLICY_PATH = Path(__file__).resolve().parents[1] / "checkpoints" / "rtv3_grasp_clutter"
-"""The shipped RT-V3 checkpoint (``config.json`` + ``model.safetensors``)."""
-
-
-# ----------------------------------------------------------------------------- methods
-
-
-@runtime_checkable
-class AssistanceMethod(Protocol):
-    """Turns the user's twist into the robot's twist, one control step at a time.
-
-    ``reset(env)`` is called after every env reset (``env`` = the unwrapped ``GraspClutter-v1``);
-    ``act(env, obs, user_twist)`` gets the current env observation (``state_dict`` layout, batch 1)
-    and the user twist ``(6,)`` float64 or None (no input) and returns the robot body twist
-    ``(6,)`` (TCP frame). ``last_diagnostics`` describes the last ``act``.
-    """
-
-    name: str
-    last_diagnostics: dict[str, Any]
-
-    def reset(self, env: Any) -> None: ...
-
-    def act(self, env: Any, obs: dict, user_twist: torch.Tensor | None) -> torch.Tensor: ...
 
 
 def _tcp_pose(env: Any) -> torch.Tensor:
     """``(4, 4)`` float64 TCP pose (world) of the single sub-scene."""
     return env.tcp_pose_matrix[0].detach().cpu().double()
+
+
+# ----------------------------------------------------------------------------- methods
 
 
 def controller_speed_limits(env: Any) -> tuple[float, float]:
@@ -82,192 +53,38 @@ def controller_speed_limits(env: Any) -> tuple[float, float]:
     return float(config.max_linear_speed), float(config.max_angular_speed)
 
 
-class DirectAssistance:
-    """Direct teleoperation: the user's twist, clipped to the controller's speed limits."""
-
-    name = "direct"
-
-    def __init__(self, max_linear_speed: float | None = None, max_angular_speed: float | None = None) -> None:
-        self._limits = (max_linear_speed, max_angular_speed)
-        self.teleop: DirectTeleoperation | None = None
-        self.last_diagnostics: dict[str, Any] = {}
-
-    def reset(self, env: Any) -> None:
-        if self.teleop is None:
-            lin, ang = controller_speed_limits(env)
-            self.teleop = DirectTeleoperation(self._limits[0] or lin, self._limits[1] or ang)
-        self.teleop.reset()
-        self.last_diagnostics = {}
-
-    def act(self, env: Any, obs: dict, user_twist: torch.Tensor | None) -> torch.Tensor:
-        if self.teleop is None:
-            raise RuntimeError("DirectAssistance.act before reset(env)")
-        user = torch.zeros(6, dtype=torch.float64) if user_twist is None else user_twist
-        self.last_diagnostics = {"mode": "user_only"}
-        return self.teleop.step(_tcp_pose(env), user)
+def check_policy_fits_env(policy: Any, env: Any) -> None:
+    """Raise ``ValueError`` when the env's cloud or grasp set has another size than the policy's inputs."""
+    cfg = getattr(policy, "config", None)
+    if cfg is None or not hasattr(cfg, "num_points"):
+        return
+    n, m = int(env.mesh_point_cloud.shape[1]), int(env.grasps.shape[1])
+    if (n, m) != (int(cfg.num_points), int(cfg.max_grasps)):
+        raise ValueError(
+            f"the env gives N={n} points and M={m} grasps but the policy expects N={cfg.num_points}, "
+            f"M={cfg.max_grasps}: make the env with num_points/max_grasps from the policy config")
 
 
-def pregrasp_goals(env: Any) -> tuple[torch.Tensor, torch.Tensor]:
-    """HO goals of the loaded scene: every valid grasp's pre-grasp and its pi-about-z twin.
-
-    Returns ``goals (2G, 4, 4)`` (world) and ``groups (2G,)``: the grasp index, shared by a
-    pre-grasp and its twin (one goal with two target poses, NOTES.md HO).
-    """
-    mask = env.grasps_mask[0].detach().cpu() > 0.5
-    index = torch.nonzero(mask).flatten()
-    if len(index) == 0:
-        raise ValueError("the scene has no valid grasp candidate: HO needs at least one goal")
-    grasps = env.grasp_poses[0, index].detach().cpu().double()
-    pre = se3.translate_along_z(grasps, -PREGRASP_DISTANCE)
-    twins = se3.rotate_about_z(pre, math.pi)
-    return torch.cat([pre, twins]), torch.cat([index, index])
-
-
-class HOAssistance:
-    """Hindsight Optimization over the scene's grasp candidates (goals rebuilt at every reset).
-
-    Args:
-        variant: ``"rtv3_authors"`` (the RT-V3 paper's baseline: translation-only cost,
-            default) or ``"javdani2018"`` (original constants incl. rotation).
-    """
-
-    name = "ho"
-
-    def __init__(self, variant: str = "rtv3_authors", max_linear_speed: float | None = None,
-                 max_angular_speed: float | None = None) -> None:
-        if variant not in HO_VARIANTS:
-            raise ValueError(f"unknown HO variant {variant!r}; known: {', '.join(HO_VARIANTS)}")
-        self.variant = variant
-        self._limits = (max_linear_speed, max_angular_speed)
-        self.ho: HindsightOptimization | None = None
-        self._target_group = -1
-        self.last_diagnostics: dict[str, Any] = {}
-
-    def reset(self, env: Any) -> None:
-        goals, groups = pregrasp_goals(env)
-        lin, ang = controller_speed_limits(env)
-        self.ho = HindsightOptimization(
-            goals, self.variant, dt=1.0 / env.control_freq, target_groups=groups.tolist(),
-            max_linear_speed=self._limits[0] or lin, max_angular_speed=self._limits[1] or ang,
-        )
-        self._target_group = int(env.target_grasp_index[0])
-        self.last_diagnostics = {}
-
-    def act(self, env: Any, obs: dict, user_twist: torch.Tensor | None) -> torch.Tensor:
-        if self.ho is None:
-            raise RuntimeError("HOAssistance.act before reset(env)")
-        user = torch.zeros(6, dtype=torch.float64) if user_twist is None else user_twist
-        twist = self.ho.step(_tcp_pose(env), user)
-        belief = self.ho.belief
-        target = torch.nonzero(self.ho.goal_ids == self._target_group).flatten()
-        self.last_diagnostics = {
-            "mode": "shared",
-            "belief": belief.numpy().copy(),
-            "goal_ids": self.ho.goal_ids.numpy().copy(),
-            "most_likely_goal": int(self.ho.goal_ids[int(belief.argmax())]),
-            "target_belief": float(belief[target[0]]) if len(target) else float("nan"),
-            "assistance": self.ho.last_assistance.numpy().copy(),
-        }
-        return twist
-
-
-class RTV3Assistance:
-    """RT-V3 shared control (:class:`SharedController`) around an ``RTV3Policy`` prior.
-
-    Args:
-        policy: an ``RTV3Policy`` (or anything with ``predict_step0_mixture(obs, update_history)``,
-            ``predict_action_chunk(obs, update_history)``, ``reset()`` and a ``config`` with
-            ``num_points`` / ``max_grasps``).
-        config: controller settings; the speed limits default to the env controller's.
-    """
-
-    name = "rtv3"
-
-    def __init__(self, policy: Any, config: SharedControlConfig | None = None) -> None:
-        self.policy = policy
-        self._config = config
-        self._prior = policy
-        self.controller: SharedController | None = None
-        self.last_diagnostics: dict[str, Any] = {}
-
-    def reset(self, env: Any) -> None:
-        cfg = getattr(self.policy, "config", None)
-        if cfg is not None and hasattr(cfg, "num_points"):
-            n, m = int(env.mesh_point_cloud.shape[1]), int(env.grasps.shape[1])
-            if (n, m) != (int(cfg.num_points), int(cfg.max_grasps)):
-                raise ValueError(
-                    f"the env gives N={n} points and M={m} grasps but the policy expects "
-                    f"N={cfg.num_points}, M={cfg.max_grasps}: make the env with num_points/max_grasps from the policy config"
-                )
-        if self.controller is None:
-            config = self._config
-            if config is None:
-                lin, ang = controller_speed_limits(env)
-                config = SharedControlConfig(max_linear_speed=lin, max_angular_speed=ang)
-            self.controller = SharedController(self._prior, config)
-        self.controller.reset()
-        self.last_diagnostics = {}
-
-    def act(self, env: Any, obs: dict, user_twist: torch.Tensor | None) -> torch.Tensor:
-        if self.controller is None:
-            raise RuntimeError("RTV3Assistance.act before reset(env)")
-        observation = observation_from_env(obs)
-        user = None if user_twist is None else user_twist[None]
-        twist = self.controller.step(observation, user)[0].double()
-        d = self.controller.last_diagnostics
-        assert d is not None
-        self.last_diagnostics = {
-            "mode": d.modes[0],
-            "class_weights": d.class_weights[0].numpy().copy(),
-            "prior_class_weights": d.prior_class_weights[0].numpy().copy(),
-            "trans_entropy_lower": float(d.trans_entropy_lower[0]),
-            "trans_entropy_upper": float(d.trans_entropy_upper[0]),
-            "rot_entropy_lower": float(d.rot_entropy_lower[0]),
-            "rot_entropy_upper": float(d.rot_entropy_upper[0]),
-            "ood": bool(d.ood[0]),
-            "surface_distance": float(d.surface_distance[0]),
-        }
-        return twist
-
-
-def load_rtv3_policy(path: str | Path | None = None):
-    """Load an ``RTV3Policy`` checkpoint folder (``config.json`` + ``model.safetensors``) for CPU inference.
-
-    Raises:
-        FileNotFoundError: no checkpoint there (the message says how to get one).
-    """
-    folder = Path(path) if path is not None else DEFAULT_POLICY_PATH
-    missing = [name for name in ("config.json", "model.safetensors") if not (folder / name).is_file()]
-    if missing:
-        where = "the shipped checkpoint" if path is None else "--policy.path"
-        raise FileNotFoundError(
-            f"no RT-V3 checkpoint at {folder} ({where}; missing {', '.join(missing)}). Train one with "
-            f"`lerobot-train --policy.type=rtv3 ...` (see README) and pass its pretrained_model folder "
-            f"with --policy.path DIR, or place it at {DEFAULT_POLICY_PATH}."
-        )
-    from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy  # lerobot import: ~6 s
-
-    policy = RTV3Policy.from_pretrained(str(folder))
-    policy.config.device = "cpu"
-    return policy.to("cpu").eval()
-
-
-def make_method(name: str, policy: Any = None, ho_variant: str = "rtv3_authors",
+def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None, ho_variant: str = "rtv3_authors",
                 config: SharedControlConfig | None = None) -> AssistanceMethod:
-    """Assistance method by name: ``"direct"``, ``"ho"`` or ``"rtv3"`` (needs ``policy``).
+    """Assistance method by name: ``"direct"``, ``"ho"`` or ``"rtv3"`` (needs ``policy``), with the
+    env controller's ``speed_limits`` (m/s, rad/s); ``config`` sets the RT-V3 controller (its speed
+    limits are replaced by the env's).
 
     Raises:
         ValueError: unknown name, or ``"rtv3"`` without a policy.
     """
     key = str(name).strip().lower().replace("-", "_")
+    lin, ang = speed_limits
     if key == "direct":
-        return DirectAssistance()
+        return DirectTeleoperation(lin, ang)
     if key == "ho":
-        return HOAssistance(ho_variant)
+        return HindsightOptimization(ho_variant, lin, ang)
     if key in ("rtv3", "rt_v3"):
         if policy is None:
-            raise ValueError("method 'rtv3' needs a policy (load one with load_rtv3_policy)")
-        return RTV3Assistance(policy, config)
+            raise ValueError("method 'rtv3' needs a policy (load one with rtv3_maniskill.policies.rtv3.load_policy)")
+        config = dataclasses.replace(config or SharedControlConfig(), max_linear_speed=lin, max_angular_speed=ang)
+        return SharedController(policy, config)
     raise ValueError(f"unknown assistance method {name!r}; known methods: {', '.join(METHOD_NAMES)}")
 
 
@@ -309,7 +126,8 @@ class SharedControlEnv(gym.Wrapper):
             raise ValueError(f"SharedControlEnv drives one env, got num_envs={base.num_envs}")
         if base.obs_mode not in ("state_dict", "pointcloud"):
             raise ValueError(f"SharedControlEnv needs obs_mode 'state_dict' or 'pointcloud', got {base.obs_mode!r}")
-        self.method: AssistanceMethod = method if method is not None else DirectAssistance()
+        self.method: AssistanceMethod = method if method is not None else DirectTeleoperation(
+            *controller_speed_limits(base))
         self.rendered_context = rendered_context and base.obs_mode == "state_dict"
         self.action_space = gym.spaces.Box(-np.inf, np.inf, shape=(6,), dtype=np.float32)
         self._scene_seed: int | None = None
@@ -338,7 +156,9 @@ class SharedControlEnv(gym.Wrapper):
             self._context = self.base.capture_point_cloud() if self.rendered_context else None
         obs = self._with_context(obs)
         self._obs = obs
-        self.method.reset(self.base)
+        if isinstance(self.method, SharedController):
+            check_policy_fits_env(self.method.policy, self.base)
+        self.method.reset()
         return obs, info
 
     def user_goal(self) -> torch.Tensor:
@@ -351,23 +171,23 @@ class SharedControlEnv(gym.Wrapper):
     def step(self, action: Any):
         if self._obs is None:
             raise RuntimeError("call reset() before step()")
-        user: torch.Tensor | None
-        if action is None:
-            user = None
-        else:
-            value = action[0] if getattr(action, "shape", None) is not None and tuple(action.shape) == (1, 6) else action
-            user = as_twist(value, "user twist (the action of SharedControlEnv)")
-            if float(user.norm()) == 0.0:
+        observation = features.observation_from_env(self._obs)
+        user: torch.Tensor | None = None
+        if action is not None:  # checked once, by the method; zeros = no input
+            user = torch.as_tensor(np.asarray(action) if not isinstance(action, torch.Tensor) else action)
+            user = user.reshape(1, -1) if user.ndim == 1 else user
+            if tuple(user.shape) == (1, 6) and user.is_floating_point() and float(user.abs().sum()) == 0.0:
                 user = None
-        robot = torch.as_tensor(self.method.act(self.base, self._obs, user)).double().reshape(-1)
-        if robot.shape != (6,) or not torch.isfinite(robot).all():
-            raise FloatingPointError(f"assistance method {self.method.name!r} returned {robot.tolist()}, expected 6 finite numbers")
+        robot = self.method.step(observation, user)[0].double()
         command = torch.cat([robot.float(), torch.tensor([GRIPPER_OPEN])])[None]
         obs, reward, terminated, truncated, info = self.env.step(command)
         obs = self._with_context(obs)
         self._obs = obs
-        diagnostics = dict(self.method.last_diagnostics)
-        info["user_twist"] = torch.zeros(6, dtype=torch.float64) if user is None else user
+        diagnostics = self.method.describe(0)
+        if "belief" in diagnostics:  # HO: the target's share of the belief
+            target = np.flatnonzero(diagnostics["goal_ids"] == int(self.base.target_grasp_index[0]))
+            diagnostics["target_belief"] = float(diagnostics["belief"][target[0]]) if len(target) else float("nan")
+        info["user_twist"] = torch.zeros(6, dtype=torch.float64) if user is None else user[0].double()
         info["robot_twist"] = robot
         info["assistance_mode"] = diagnostics.get("mode", "")
         info["assistance"] = diagnostics

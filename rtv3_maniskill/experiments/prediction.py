@@ -225,9 +225,9 @@ def load_episodes(
                 episode_index=int(ep),
                 scene_seed=scene,
                 states=states[rows],
-                point_cloud=np.asarray(context[ft.POINT_CLOUD], dtype=np.float32),
+                point_cloud=ft.unflatten(ft.POINT_CLOUD, np.asarray(context[ft.POINT_CLOUD], dtype=np.float32)),
                 point_cloud_mask=np.asarray(context[ft.POINT_CLOUD_MASK], dtype=np.float32),
-                grasps=np.asarray(context[ft.GRASPS], dtype=np.float32),
+                grasps=ft.unflatten(ft.GRASPS, np.asarray(context[ft.GRASPS], dtype=np.float32)),
                 grasps_mask=np.asarray(context[ft.GRASPS_MASK], dtype=np.float32),
             )
         )
@@ -372,22 +372,6 @@ def evaluate_windows(
     return out
 
 
-def load_policy(path: str | Path):
-    """An ``RTV3Policy`` checkpoint folder (``config.json`` + ``model.safetensors``) on CPU, eval mode."""
-    folder = Path(path).expanduser()
-    missing = [name for name in ("config.json", "model.safetensors") if not (folder / name).is_file()]
-    if missing:
-        raise FileNotFoundError(
-            f"no RT-V3 checkpoint at {folder} (missing {', '.join(missing)}); pass the pretrained_model folder "
-            "written by lerobot-train (or RTV3Policy.save_pretrained) as --policy.path"
-        )
-    from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
-
-    policy = RTV3Policy.from_pretrained(str(folder))
-    policy.config.device = "cpu"
-    return policy.to("cpu").eval()
-
-
 def run_prediction_evaluation(
     policy_path: str | Path,
     dataset_root: str | Path,
@@ -408,7 +392,10 @@ def run_prediction_evaluation(
     """
     if max_windows is not None and max_windows < 1:
         raise ValueError(f"max_windows must be >= 1, got {max_windows}")
-    policy = load_policy(policy_path) if policy is None else policy
+    if policy is None:
+        from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
+
+        policy = load_policy(policy_path)
     cfg = policy.config
     episodes, held_out = load_episodes(dataset_root, seed_range, last_fraction, all_scenes)
     if episodes:
