@@ -19,7 +19,7 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 
-from rtv3_maniskill import features as F
+from rtv3_maniskill import features
 
 GYM_ID = "rtv3/GraspClutterLeRobot-v1"
 
@@ -27,7 +27,7 @@ GYM_ID = "rtv3/GraspClutterLeRobot-v1"
 class GraspClutterLeRobotEnv(gym.Env):
     """Single ``GraspClutter-v1`` env (CPU) with numpy observations for LeRobot."""
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": F.FPS}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": features.FPS}
 
     def __init__(self, render_mode: str | None = "rgb_array", max_episode_steps: int = 150, **task_kwargs):
         import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
@@ -44,10 +44,10 @@ class GraspClutterLeRobotEnv(gym.Env):
         base = self._env.unwrapped
         self.num_points, self.max_grasps = base.num_points, base.max_grasps
         self._max_episode_steps = max_episode_steps
-        context_dim = F.environment_state_dim(self.num_points, self.max_grasps)
+        context_dim = features.environment_state_dim(self.num_points, self.max_grasps)
         self.observation_space = gym.spaces.Dict(
             {
-                "agent_pos": gym.spaces.Box(-np.inf, np.inf, (F.STATE_DIM,), np.float32),
+                "agent_pos": gym.spaces.Box(-np.inf, np.inf, (features.STATE_DIM,), np.float32),
                 "environment_state": gym.spaces.Box(-np.inf, np.inf, (context_dim,), np.float32),
             }
         )
@@ -55,9 +55,9 @@ class GraspClutterLeRobotEnv(gym.Env):
         self.action_space = gym.spaces.Box(-limit, limit, dtype=np.float32)
 
     def _convert(self, obs: dict) -> dict[str, np.ndarray]:
-        inputs = F.observation_from_env(obs)
-        packed = F.pack_context(inputs[F.POINT_CLOUD], inputs[F.POINT_CLOUD_MASK], inputs[F.GRASPS], inputs[F.GRASPS_MASK])
-        return {"agent_pos": inputs[F.STATE][0].cpu().numpy(), "environment_state": packed[0].cpu().numpy()}
+        inputs = features.observation_from_env(obs)
+        packed = features.pack_context(inputs[features.POINT_CLOUD], inputs[features.POINT_CLOUD_MASK], inputs[features.GRASPS], inputs[features.GRASPS_MASK])
+        return {"agent_pos": inputs[features.STATE][0].cpu().numpy(), "environment_state": packed[0].cpu().numpy()}
 
     @staticmethod
     def _info(info: dict) -> dict:
@@ -98,28 +98,28 @@ class RTV3ClutterEnvConfig(EnvConfig):
     """``--env.type=rtv3_clutter``: ``GraspClutter-v1`` with state + packed scene context."""
 
     task: str | None = "GraspClutter-v1"
-    fps: int = F.FPS
+    fps: int = features.FPS
     episode_length: int = 150
     scene_type: str = "mixed"
     object_source: str = "procedural"
     num_points: int = 512
     """Must equal the policy's ``num_points`` (the shipped checkpoint and `rtv3 generate` use 512)."""
-    max_grasps: int = F.DEFAULT_MAX_GRASPS
+    max_grasps: int = features.DEFAULT_MAX_GRASPS
     features: dict[str, PolicyFeature] = field(default_factory=dict)
     features_map: dict[str, str] = field(
         default_factory=lambda: {
-            F.ACTION: F.ACTION,
-            "agent_pos": F.STATE,
+            features.ACTION: features.ACTION,
+            "agent_pos": features.STATE,
             "environment_state": "observation.environment_state",
         }
     )
 
     def __post_init__(self):
         self.features = {
-            F.ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(6,)),
-            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(F.STATE_DIM,)),
+            features.ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(6,)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(features.STATE_DIM,)),
             "environment_state": PolicyFeature(
-                type=FeatureType.ENV, shape=(F.environment_state_dim(self.num_points, self.max_grasps),)
+                type=FeatureType.ENV, shape=(features.environment_state_dim(self.num_points, self.max_grasps),)
             ),
         }
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -14,21 +15,22 @@ import numpy as np
 import pytest
 import torch
 
-from rtv3_maniskill import features as F
+from rtv3_maniskill import features
 from rtv3_maniskill import se3
 from rtv3_maniskill.cli import main
 from rtv3_maniskill.datasets.demonstrations import HOLD_STEPS
-from rtv3_maniskill.datasets.lerobot_export import REPO_ID, StagingArea, end_at_pregrasp
+from rtv3_maniskill.datasets.lerobot_export import ATTEMPT_FIELDS, ATTEMPTS, REPO_ID, SETTINGS, StagingArea, end_at_pregrasp
+from rtv3_maniskill.records import RecordStore
 from rtv3_maniskill.tasks.grasp_sampler import PREGRASP_DISTANCE
 
 ARGS = ["--num-points", "256", "--max-grasps", "16", "--context", "mesh", "--scene-type", "packed"]
 
 
 def _windows() -> dict[str, list[float]]:
-    past = [i / F.FPS for i in range(-F.HISTORY_STEPS + 1, 1)]
-    keys = [F.STATE, F.STATE_HISTORY, F.POINT_CLOUD, F.POINT_CLOUD_MASK, F.GRASPS, F.GRASPS_MASK]
+    past = [i / features.FPS for i in range(-features.HISTORY_STEPS + 1, 1)]
+    keys = [features.STATE, features.STATE_HISTORY, features.POINT_CLOUD, features.POINT_CLOUD_MASK, features.GRASPS, features.GRASPS_MASK]
     out = {k: past for k in keys}
-    out[F.ACTION] = [i / F.FPS for i in range(F.HORIZON_STEPS)]
+    out[features.ACTION] = [i / features.FPS for i in range(features.HORIZON_STEPS)]
     return out
 
 
@@ -47,12 +49,15 @@ def test_tiny_generation_loads_with_training_windows(tiny_dataset):
     assert summary["grasp_targets_attempted"] == 3
     ds = LeRobotDataset(REPO_ID, root=tiny_dataset, delta_timestamps=_windows())
     assert ds.num_episodes == summary["trajectories"]
-    assert ds.fps == F.FPS
+    assert ds.fps == features.FPS
     item = ds[len(ds) // 2]
-    assert item[F.STATE].shape == (F.HISTORY_STEPS, F.STATE_DIM)
-    assert item[F.POINT_CLOUD].shape == (F.HISTORY_STEPS, 256, 6)
-    assert item[F.GRASPS].shape == (F.HISTORY_STEPS, 16, F.GRASP_DIM)
-    assert item[F.ACTION].shape == (F.HORIZON_STEPS, 6)
+    assert item[features.STATE].shape == (features.HISTORY_STEPS, features.STATE_DIM)
+    # stored flat (LeRobot's dataset tools copy only 1-D features); features.unflatten restores them
+    assert item[features.POINT_CLOUD].shape == (features.HISTORY_STEPS, 256 * 6)
+    assert features.unflatten(features.POINT_CLOUD, item[features.POINT_CLOUD]).shape == (features.HISTORY_STEPS, 256, 6)
+    assert features.unflatten(features.GRASPS, item[features.GRASPS]).shape == (features.HISTORY_STEPS, 16, features.GRASP_DIM)
+    assert item[features.STATE_HISTORY].shape == (features.HISTORY_STEPS, features.HISTORY_STEPS * features.STATE_DIM)
+    assert item[features.ACTION].shape == (features.HORIZON_STEPS, 6)
     assert item["task"].startswith("grasp the ")
 
 
@@ -61,10 +66,10 @@ def test_actions_are_the_realised_twists(tiny_dataset):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     ds = LeRobotDataset(REPO_ID, root=tiny_dataset, episodes=[0])
-    state = torch.stack([ds[i][F.STATE] for i in range(len(ds))]).double()
-    action = torch.stack([ds[i][F.ACTION] for i in range(len(ds))]).double()
-    poses = se3.pose_to_matrix(state[:, F.EE_POS], state[:, F.EE_QUAT])
-    predicted = poses[:-1] @ se3.se3_exp(action[:-1] * F.DT)
+    state = torch.stack([ds[i][features.STATE] for i in range(len(ds))]).double()
+    action = torch.stack([ds[i][features.ACTION] for i in range(len(ds))]).double()
+    poses = se3.pose_to_matrix(state[:, features.EE_POS], state[:, features.EE_QUAT])
+    predicted = poses[:-1] @ se3.se3_exp(action[:-1] * features.DT)
     assert (predicted[:, :3, 3] - poses[1:, :3, 3]).abs().max() < 1e-4
     # The episode ends holding still (zero twist), as the model must learn to stop.
     assert action[-10:].abs().max() < 0.02
@@ -79,24 +84,24 @@ def test_episode_ends_holding_at_the_pregrasp(tiny_dataset):
     assert not bool(reached[0]) and bool(reached[-1])
     assert int(reached.sum()) == HOLD_STEPS + 1
     last = ds[len(ds) - 1]
-    grasp = last[F.GRASPS][int(last[F.TARGET_GRASP])].double()
+    grasp = features.unflatten(features.GRASPS, last[features.GRASPS])[int(last[features.TARGET_GRASP])].double()
     pose = se3.pose_to_matrix(grasp[None, :3], grasp[None, 3:7])
     pregrasp = se3.translate_along_z(pose, -PREGRASP_DISTANCE)[0, :3, 3]
-    assert (last[F.STATE][F.EE_POS].double() - pregrasp).norm() < 0.015
+    assert (last[features.STATE][features.EE_POS].double() - pregrasp).norm() < 0.015
 
 
 def test_end_at_pregrasp_cuts_a_staged_approach():
     """Episodes staged with the approach (``--end-at grasp``) export cut at the pre-grasp + copies at rest."""
     rng = np.random.default_rng(0)
-    state, action = rng.normal(size=(40, F.STATE_DIM)).astype(np.float32), rng.normal(size=(40, 6)).astype(np.float32)
+    state, action = rng.normal(size=(40, features.STATE_DIM)).astype(np.float32), rng.normal(size=(40, 6)).astype(np.float32)
     cut_state, cut_action = end_at_pregrasp(state, action, pregrasp_step=20)
-    assert cut_state.shape == (21 + HOLD_STEPS, F.STATE_DIM) and cut_action.shape == (21 + HOLD_STEPS, 6)
+    assert cut_state.shape == (21 + HOLD_STEPS, features.STATE_DIM) and cut_action.shape == (21 + HOLD_STEPS, 6)
     np.testing.assert_array_equal(cut_state[:21], state[:21])
     np.testing.assert_array_equal(cut_action[:20], action[:20])
     assert not cut_action[20:].any()
     held = cut_state[21:]
-    np.testing.assert_array_equal(held[:, F.EE_POS], np.repeat(state[20:21, F.EE_POS], HOLD_STEPS, 0))
-    assert not held[:, F.EE_TWIST].any() and not held[:, F.ARM_QVEL].any()
+    np.testing.assert_array_equal(held[:, features.EE_POS], np.repeat(state[20:21, features.EE_POS], HOLD_STEPS, 0))
+    assert not held[:, features.EE_TWIST].any() and not held[:, features.ARM_QVEL].any()
     with pytest.raises(ValueError, match="pregrasp_step"):
         end_at_pregrasp(state, action, pregrasp_step=40)
 
@@ -117,8 +122,7 @@ def test_interrupted_run_resumes_without_duplicates(tmp_path):
     assert main(["generate", "--num-scenes", "1", "--output", str(root), "--grasps-per-scene", "6", *ARGS]) == 0
     attempts = StagingArea(root).attempts()
     assert len(attempts) == 6  # every (scene, grasp) exactly once
-    lines = (staging / "attempts.jsonl").read_text().splitlines()
-    keys = [json.loads(line)["key"] for line in lines if line.strip()]
+    keys = [row["key"] for row in RecordStore.read(staging / ATTEMPTS, ATTEMPT_FIELDS)]
     assert len(keys) == len(set(keys)), "no grasp target was attempted twice"
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -141,6 +145,53 @@ def test_bad_inputs_give_clear_errors(tmp_path, tiny_dataset):
         main(["generate", "--num-scenes", "1", "--output", str(foreign), *ARGS])
 
 
+def test_failed_run_does_not_block_the_corrected_rerun(tmp_path):
+    """A bad --objects is refused before anything is written; a folder whose earlier run failed
+    before its first attempt (settings written, nothing recorded) takes a rerun with other settings."""
+    root = tmp_path / "ds"
+    with pytest.raises(SystemExit, match="--objects.*/nonexistent"):
+        main(["generate", "--num-scenes", "1", "--output", str(root), "--objects", "/nonexistent", *ARGS])
+    assert not root.exists()
+    # A run that died after writing its settings, before recording any attempt:
+    other = dict(format="rtv3-grasp-clutter-v1", seed=0, scene_type="packed", objects="/nonexistent",
+                 num_points=256, max_grasps=16, context="mesh", end_at="pregrasp")
+    StagingArea(root, settings=other).close()
+    assert json.loads((root / SETTINGS).read_text())["objects"] == "/nonexistent"
+    assert main(["generate", "--num-scenes", "1", "--output", str(root), "--grasps-per-scene", "1", *ARGS]) == 0
+    assert json.loads((root / SETTINGS).read_text())["objects"] == "procedural"
+    assert len(StagingArea(root).attempts()) == 1
+    # ... and once attempts are recorded, other settings are refused
+    with pytest.raises(SystemExit, match="other settings"):
+        main(["generate", "--num-scenes", "1", "--output", str(root), "--seed", "7", *ARGS])
+
+
+def test_truncated_staged_episode_names_the_file(tiny_dataset, tmp_path):
+    """A truncated staging .npz: a clear error naming the file and what to do; doing it works."""
+    root = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, root)
+    victim = StagingArea(root).episode_files()[0]
+    episodes = len(StagingArea(root).episode_files())
+    data = victim.read_bytes()
+    victim.write_bytes(data[: len(data) // 2])
+    with pytest.raises(SystemExit, match=rf"(?s){victim.name}.*Delete it and rerun"):
+        main(["generate", "--num-scenes", "1", "--output", str(root), "--grasps-per-scene", "3", "--export-only", *ARGS])
+    victim.unlink()
+    assert main(["generate", "--num-scenes", "1", "--output", str(root), "--grasps-per-scene", "3", *ARGS]) == 0
+    assert victim.exists() and len(StagingArea(root).episode_files()) == episodes
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    assert LeRobotDataset(REPO_ID, root=root).num_episodes == episodes
+
+
+def test_staged_episode_loads_as_an_episode(tiny_dataset):
+    from rtv3_maniskill.datasets.demonstrations import Episode
+
+    episode = StagingArea.load(StagingArea(tiny_dataset).episode_files()[0])
+    assert isinstance(episode, Episode)
+    assert episode.point_cloud.shape == (256, 6) and episode.grasps.shape == (16, features.GRASP_DIM)
+    assert episode.task.startswith("grasp the ") and 0 < episode.pregrasp_step < len(episode.state)
+
+
 def test_visualize_episode(tiny_dataset, tmp_path):
     out = tmp_path / "episode.png"
     assert main(["visualize-episode", "--dataset", str(tiny_dataset), "--episode", "0", "--output", str(out)]) == 0
@@ -154,10 +205,10 @@ def test_state_history_matches_the_episode(tiny_dataset):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     ds = LeRobotDataset(REPO_ID, root=tiny_dataset, episodes=[0])
-    states = torch.stack([ds[i][F.STATE] for i in range(len(ds))])
+    states = torch.stack([ds[i][features.STATE] for i in range(len(ds))])
     for t in (0, 3, len(ds) - 1):
-        history = ds[t][F.STATE_HISTORY]
-        expected = torch.stack([states[max(t - k, 0)] for k in range(F.HISTORY_STEPS - 1, -1, -1)])
+        history = features.unflatten(features.STATE_HISTORY, ds[t][features.STATE_HISTORY])
+        expected = torch.stack([states[max(t - k, 0)] for k in range(features.HISTORY_STEPS - 1, -1, -1)])
         assert torch.equal(history, expected)
 
 

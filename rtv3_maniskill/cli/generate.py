@@ -42,6 +42,12 @@ def _validate(args: argparse.Namespace) -> None:
     parent = args.output.expanduser().absolute().parent
     if not parent.is_dir():
         raise SystemExit(f"error: the parent folder of --output does not exist: {parent}")
+    from rtv3_maniskill.tasks.object_library import make_object_set
+
+    try:  # before anything is written: a failed run must not leave a folder that blocks the rerun
+        make_object_set(args.objects)
+    except (FileNotFoundError, ValueError) as err:
+        raise SystemExit(f"error: --objects: {err}") from None
 
 
 def _settings(args: argparse.Namespace) -> dict:
@@ -66,6 +72,7 @@ def _init_worker(args_dict: dict) -> None:
 
     import rtv3_maniskill  # noqa: F401
     from rtv3_maniskill.datasets.demonstrations import DemonstrationRecorder
+    from rtv3_maniskill.datasets.lerobot_export import StagingArea
     from rtv3_maniskill.datasets.planner import PandaPlanner
 
     torch.set_num_threads(1)
@@ -82,24 +89,22 @@ def _init_worker(args_dict: dict) -> None:
     )
     _WORKER["recorder"] = DemonstrationRecorder(env, PandaPlanner, plan_timeout=args_dict["plan_timeout"], end_at=args_dict["end_at"])
     _WORKER["args"] = args_dict
+    _WORKER["staging"] = StagingArea(Path(args_dict["output"]))  # appends attempts (the run's process guarded the settings)
 
 
 def _run_scene(job: tuple[int, list[str]]) -> dict:
     """Record every not-yet-attempted grasp of one scene; returns counts for the summary."""
-    import numpy as np
-
     from rtv3_maniskill.datasets.lerobot_export import StagingArea
 
     scene_seed, done_keys = job
     args = _WORKER["args"]
     recorder = _WORKER["recorder"]
-    staging = StagingArea(Path(args["output"]))
+    staging = _WORKER["staging"]
     start = time.perf_counter()
     num_grasps = recorder.load_scene(scene_seed)
     if args["context"] == "rendered" and recorder.base.scene.can_render():
         cloud, mask = recorder.base.capture_point_cloud()
-        recorder._context["point_cloud"] = cloud[0].cpu().numpy().astype(np.float32)
-        recorder._context["point_cloud_mask"] = mask[0].cpu().numpy().astype(np.float32)
+        recorder.set_scene_point_cloud(cloud[0].cpu().numpy(), mask[0].cpu().numpy())
     grasps = range(num_grasps if args["grasps_per_scene"] is None else min(num_grasps, args["grasps_per_scene"]))
     outcomes: Counter = Counter()
     frames = 0
@@ -124,20 +129,18 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from rtv3_maniskill.datasets.lerobot_export import StagingArea, check_or_write_settings, export_lerobot_dataset
+    from rtv3_maniskill.datasets.lerobot_export import StagedEpisodeError, StagingArea, export_lerobot_dataset
+    from rtv3_maniskill.records import scene_seeds
 
     _validate(args)
     args.output = args.output.expanduser().absolute()
-    try:
-        check_or_write_settings(args.output, _settings(args))
+    try:  # refuses a folder with attempts made under other settings (not one whose run failed before any)
+        with StagingArea(args.output, settings=_settings(args)) as staging:
+            attempted = staging.attempts()
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
-    staging = StagingArea(args.output)
-    attempted = staging.attempts()
-    scenes = [args.seed * 100000 + i for i in range(args.num_scenes)]
-    if args.export_only:
-        scenes = []
-    jobs = [(s, sorted(k for k in attempted if k.startswith(StagingArea.key(s, 0)[:13]))) for s in scenes]
+    scenes = [] if args.export_only else scene_seeds(args.seed, args.num_scenes)
+    jobs = [(s, sorted(k for k in attempted if k.startswith(StagingArea.scene_prefix(s)))) for s in scenes]
     if attempted:
         print(f"resuming: {len(attempted)} grasp targets already attempted in {args.output}")
     args_dict = dict(vars(args), output=str(args.output))
@@ -164,7 +167,12 @@ def run(args: argparse.Namespace) -> int:
         pool.close()
         pool.join()
     wall = time.perf_counter() - start
-    exported = export_lerobot_dataset(args.output, args.num_points, args.max_grasps, end_at=args.end_at)
+    if "staging" in _WORKER:  # this process recorded (workers=1)
+        _WORKER.pop("staging").close()
+    try:
+        exported = export_lerobot_dataset(args.output, args.num_points, args.max_grasps, end_at=args.end_at)
+    except StagedEpisodeError as err:
+        raise SystemExit(f"error: {err}") from None
     # Summary over the whole folder (this run and earlier, interrupted ones).
     all_attempts = staging.attempts()
     outcome_counts = Counter(r["outcome"] for r in all_attempts.values())

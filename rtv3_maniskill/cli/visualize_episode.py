@@ -33,8 +33,9 @@ def run(args: argparse.Namespace) -> int:
     state = np.stack([f[F.STATE].numpy() for f in frames])
     action = np.stack([f[F.ACTION].numpy() for f in frames])
     first = frames[0]
-    cloud = first[F.POINT_CLOUD].numpy()[first[F.POINT_CLOUD_MASK].numpy() > 0]
-    grasps = first[F.GRASPS].numpy()[first[F.GRASPS_MASK].numpy() > 0]
+    # stored flat (F.STORED_FLAT): back to (N, 6) / (M, 9)
+    cloud = F.unflatten(F.POINT_CLOUD, first[F.POINT_CLOUD].numpy())[first[F.POINT_CLOUD_MASK].numpy() > 0]
+    grasps = F.unflatten(F.GRASPS, first[F.GRASPS].numpy())[first[F.GRASPS_MASK].numpy() > 0]
     target = int(first[F.TARGET_GRASP].reshape(-1)[0])
 
     fig = plt.figure(figsize=(13, 5.5))

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import se3
-from rtv3_maniskill.features import DT, STATE, observation_from_env
+from rtv3_maniskill import features
 from rtv3_maniskill.tasks.grasp_clutter import PREGRASP_DISTANCE
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF_SIZE
@@ -109,7 +109,7 @@ def describe_grasp(object_name: str, grasp_pose: np.ndarray) -> str:
 
 
 def _state_vector(obs: dict) -> np.ndarray:
-    return observation_from_env(obs)[STATE][0].cpu().numpy()
+    return features.observation_from_env(obs)[features.STATE][0].cpu().numpy()
 
 
 class DemonstrationRecorder:
@@ -149,6 +149,17 @@ class DemonstrationRecorder:
         self.planner = self.planner_factory(self.base.layouts[0])
         return int(self._context["grasps_mask"].sum())
 
+    def set_scene_point_cloud(self, point_cloud, point_cloud_mask) -> None:
+        """Record the loaded scene's episodes with this static cloud (e.g. a depth-camera
+        capture) instead of the one :meth:`load_scene` took: ``(N, 6)`` and ``(N,)``."""
+        if self.scene_seed is None:
+            raise RuntimeError("load_scene first: the point cloud belongs to the loaded scene")
+        cloud = np.asarray(point_cloud, dtype=np.float32)
+        mask = np.asarray(point_cloud_mask, dtype=np.float32)
+        if cloud.ndim != 2 or cloud.shape[1] != 6 or mask.shape != cloud.shape[:1]:
+            raise ValueError(f"expected a (N, 6) cloud and a (N,) mask, got {cloud.shape} and {mask.shape}")
+        self._context.update(point_cloud=cloud, point_cloud_mask=mask)
+
     def record(self, grasp_index: int, seed: int) -> Episode | str:
         """Demonstration toward grasp ``grasp_index`` of the loaded scene, or a failure reason."""
         rng = np.random.default_rng(seed)
@@ -170,10 +181,10 @@ class DemonstrationRecorder:
         approach = self.planner.plan_straight_line(transit.trajectory.q[-1], grasp, ignore_objects={target_object})
         if not approach.success:
             return "infeasible_target" if approach.failure_reason in _INFEASIBLE else "planning_failed"
-        self._grasp = grasp
-        return self._execute(transit.trajectory, approach.trajectory, grasp_index, target_object, pregrasp, seed)
+        return self._execute(transit.trajectory, approach.trajectory, grasp_index, target_object, grasp, pregrasp, seed)
 
-    def _execute(self, transit, approach, grasp_index, target_object, pregrasp, seed) -> Episode | str:
+    def _execute(self, transit, approach, grasp_index, target_object, grasp, pregrasp, seed) -> Episode | str:
+        """Run the planned motion toward ``grasp`` (``(4, 4)``, the canonicalised target pose)."""
         if self.end_at == "grasp":
             q_plan = np.concatenate([transit.q, approach.q[1:]])
             qd_plan = np.concatenate([transit.qd, approach.qd[1:]])
@@ -221,11 +232,11 @@ class DemonstrationRecorder:
             scene_seed=int(self.scene_seed),
             object_names=names,
             target_object=target_object,
-            task=describe_grasp(names[target_object], self._grasp),
+            task=describe_grasp(names[target_object], grasp),
             pregrasp_step=pregrasp_step,
             info=dict(plan_seed=seed, closest_to_pregrasp=closest_to_pregrasp, end_at=self.end_at),
             **self._context,
         )
 
 
-__all__ = ["DemonstrationRecorder", "END_AT", "Episode", "FAILURE_REASONS", "HOLD_STEPS", "describe_grasp", "random_start_pose", "DT"]
+__all__ = ["DemonstrationRecorder", "END_AT", "Episode", "FAILURE_REASONS", "HOLD_STEPS", "describe_grasp", "random_start_pose"]

@@ -5,9 +5,16 @@ Layout of an output folder ``DIR`` (the dataset root LeRobot loads):
 * ``DIR/meta``, ``DIR/data``: the LeRobot dataset (written with LeRobot's own
   ``LeRobotDataset.create`` / ``add_frame`` / ``save_episode`` / ``finalize``);
 * ``DIR/rtv3_staging/``: one ``.npz`` per finished episode, written atomically, and
-  ``attempts.jsonl`` with one line per attempted (scene, grasp) and its outcome;
+  ``attempts.csv`` (a ``rtv3_maniskill.records.RecordStore``) with one row per attempted
+  (scene, grasp) and its outcome;
 * ``DIR/rtv3_generation.json``: the generation settings, so a resumed run can refuse a
-  folder that holds a different dataset.
+  folder that holds attempts made with other settings.
+
+The 2-D features are stored flat (``features.STORED_FLAT``) so that LeRobot's dataset tools
+(``lerobot-edit-dataset``: delete_episodes, split, merge, modify_tasks) can copy them. Note
+that the CLI writes its output to ``--root/--new_repo_id``, inside this folder when
+``--root`` is it, and a failed run leaves that folder half-made (LeRobot refuses to write
+into it again until it is removed).
 
 Killing a run loses at most the episodes in progress: staging files appear only when
 complete, and the LeRobot dataset is rebuilt from the staged episodes (in a temporary
@@ -19,16 +26,22 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import zipfile
+import zlib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from rtv3_maniskill import features as F
+from rtv3_maniskill import features
 from rtv3_maniskill.datasets.demonstrations import END_AT, HOLD_STEPS, Episode
 
 STAGING = "rtv3_staging"
 SETTINGS = "rtv3_generation.json"
-ATTEMPTS = "attempts.jsonl"
+ATTEMPTS = "attempts.csv"
+ATTEMPT_FIELDS = ("key", "scene", "grasp", "outcome", "frames")
+_EPISODE_ARRAYS = ("state", "action", "point_cloud", "point_cloud_mask", "grasps", "grasps_mask")
+_EPISODE_META = ("target_grasp_index", "scene_seed", "object_names", "target_object", "task", "pregrasp_step", "info")
 REPO_ID = "local/rtv3_grasp_clutter"
 
 
@@ -41,22 +54,25 @@ def dataset_features(num_points: int, max_grasps: int) -> dict:
         + [f"q{i}" for i in range(1, 8)]
         + [f"dq{i}" for i in range(1, 8)]
     )
+    # The 2-D features are stored flat, row-major (features.STORED_FLAT: LeRobot's dataset
+    # tools cannot copy 2-D columns); readers reshape them with features.unflatten.
+    flat = features.stored_shape
     return {
-        F.STATE: {"dtype": "float32", "shape": (F.STATE_DIM,), "names": state_names},
-        F.STATE_HISTORY: {"dtype": "float32", "shape": (F.HISTORY_STEPS, F.STATE_DIM), "names": ["step", "state"]},
-        F.POINT_CLOUD: {"dtype": "float32", "shape": (num_points, 6), "names": ["point", "xyzrgb"]},
-        F.POINT_CLOUD_MASK: {"dtype": "float32", "shape": (num_points,), "names": ["point"]},
-        F.GRASPS: {"dtype": "float32", "shape": (max_grasps, F.GRASP_DIM), "names": ["grasp", "pos_quat_width_score"]},
-        F.GRASPS_MASK: {"dtype": "float32", "shape": (max_grasps,), "names": ["grasp"]},
-        F.ACTION: {"dtype": "float32", "shape": (6,), "names": ["vx", "vy", "vz", "wx", "wy", "wz"]},
-        F.TARGET_GRASP: {"dtype": "int64", "shape": (1,), "names": None},
+        features.STATE: {"dtype": "float32", "shape": (features.STATE_DIM,), "names": state_names},
+        features.STATE_HISTORY: {"dtype": "float32", "shape": flat(features.STATE_HISTORY, features.HISTORY_STEPS), "names": None},
+        features.POINT_CLOUD: {"dtype": "float32", "shape": flat(features.POINT_CLOUD, num_points), "names": None},
+        features.POINT_CLOUD_MASK: {"dtype": "float32", "shape": (num_points,), "names": ["point"]},
+        features.GRASPS: {"dtype": "float32", "shape": flat(features.GRASPS, max_grasps), "names": None},
+        features.GRASPS_MASK: {"dtype": "float32", "shape": (max_grasps,), "names": ["grasp"]},
+        features.ACTION: {"dtype": "float32", "shape": (6,), "names": ["vx", "vy", "vz", "wx", "wy", "wz"]},
+        features.TARGET_GRASP: {"dtype": "int64", "shape": (1,), "names": None},
         "scene_seed": {"dtype": "int64", "shape": (1,), "names": None},
         "target_object": {"dtype": "int64", "shape": (1,), "names": None},
         "pregrasp_reached": {"dtype": "bool", "shape": (1,), "names": None},
     }
 
 
-def state_histories(states: np.ndarray, steps: int = F.HISTORY_STEPS) -> np.ndarray:
+def state_histories(states: np.ndarray, steps: int = features.HISTORY_STEPS) -> np.ndarray:
     """``(S, 27)`` episode states -> ``(S, steps, 27)`` windows ending at each step, the first
     state repeated before the episode start (what LeRobot's windows and the policy queue do)."""
     padded = np.concatenate([np.repeat(states[:1], steps - 1, 0), states])
@@ -78,37 +94,73 @@ def end_at_pregrasp(state: np.ndarray, action: np.ndarray, pregrasp_step: int, h
     if not 0 <= pregrasp_step < len(state):
         raise ValueError(f"pregrasp_step {pregrasp_step} outside an episode of {len(state)} steps")
     at_rest = state[pregrasp_step].copy()
-    at_rest[F.EE_TWIST] = 0.0
-    at_rest[F.ARM_QVEL] = 0.0
+    at_rest[features.EE_TWIST] = 0.0
+    at_rest[features.ARM_QVEL] = 0.0
     states = np.concatenate([state[: pregrasp_step + 1], np.repeat(at_rest[None], hold_steps, 0)])
     actions = np.concatenate([action[:pregrasp_step], np.zeros((hold_steps + 1, action.shape[1]), action.dtype)])
     return states.astype(np.float32), actions.astype(np.float32)
 
 
-class StagingArea:
-    """Finished episodes and attempt outcomes of a (possibly interrupted) generation run."""
+class StagedEpisodeError(RuntimeError):
+    """A staged episode file cannot be read (truncated or corrupt); the message names it."""
 
-    def __init__(self, root: Path):
+
+class StagingArea:
+    """Finished episodes and attempt outcomes of a (possibly interrupted) generation run.
+
+    The outcomes are a :class:`rtv3_maniskill.records.RecordStore` (``attempts.csv``, one row
+    per attempted (scene, grasp), fsync'd, torn rows cut). Opened with ``settings`` (the
+    generating process) it guards them: a folder that already holds attempts made with other
+    settings is refused, while a folder whose earlier run failed before its first attempt
+    (settings written, nothing recorded) is not. Workers open it without ``settings``.
+    A staged episode counts only once its attempt is recorded: an ``.npz`` without a success
+    row (a kill between the two writes) is re-attempted, and deleted when opened with settings.
+    """
+
+    def __init__(self, root: Path, settings: dict | None = None):
+        from rtv3_maniskill.records import RecordStore
+
         self.root = Path(root)
         self.dir = self.root / STAGING
-        self.dir.mkdir(parents=True, exist_ok=True)
         self.attempts_file = self.dir / ATTEMPTS
+        if settings is not None and not (self.root / SETTINGS).exists() and not self.dir.exists():
+            if (self.root / "meta").exists() or (self.root / "data").exists():
+                raise ValueError(f"{self.root} already holds a dataset that rtv3 generate did not create; choose another --output folder")
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self._import_legacy_attempts()
+        self.records = RecordStore(self.attempts_file, ATTEMPT_FIELDS, key=("key",), settings=settings, settings_path=self.root / SETTINGS)
+        if settings is not None:
+            recorded = self.attempts()
+            for path in self.episode_files():
+                if path.stem not in recorded:
+                    path.unlink()
+
+    def close(self) -> None:
+        self.records.close()
+
+    def __enter__(self) -> StagingArea:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     @staticmethod
     def key(scene_seed: int, grasp_index: int) -> str:
         return f"scene{scene_seed:08d}_grasp{grasp_index:03d}"
 
+    @staticmethod
+    def scene_prefix(scene_seed: int) -> str:
+        """The start of every key of ``scene_seed``."""
+        return StagingArea.key(scene_seed, 0).split("_")[0] + "_"
+
     def attempts(self) -> dict[str, dict]:
-        """Outcome per attempted key; the last line wins; a torn last line is ignored."""
-        out: dict[str, dict] = {}
-        if self.attempts_file.exists():
-            for line in self.attempts_file.read_text().splitlines():
-                try:
-                    record = json.loads(line)
-                except json.JSONDecodeError:
-                    continue
-                out[record["key"]] = record
-        # An episode counts as done only once its file exists.
+        """Outcome per attempted key (the last row wins), rows as ``dict(key, scene, grasp,
+        outcome, frames)``. A success counts only while its episode file exists (delete a file to
+        have its grasp attempted again)."""
+        from rtv3_maniskill.records import RecordStore
+
+        rows = RecordStore.read(self.attempts_file, ATTEMPT_FIELDS) if self.attempts_file.exists() else []
+        out = {r["key"]: dict(r, scene=int(r["scene"]), grasp=int(r["grasp"]), frames=int(r["frames"])) for r in rows}
         return {k: r for k, r in out.items() if r["outcome"] != "success" or (self.dir / f"{k}.npz").exists()}
 
     def save(self, episode: Episode) -> None:
@@ -137,40 +189,45 @@ class StagingArea:
         os.replace(tmp, self.dir / f"{key}.npz")
 
     def log_attempt(self, scene_seed: int, grasp_index: int, outcome: str, frames: int = 0) -> None:
-        line = json.dumps(dict(key=self.key(scene_seed, grasp_index), scene=scene_seed, grasp=grasp_index, outcome=outcome, frames=frames))
-        with open(self.attempts_file, "a") as f:
-            f.write(line + "\n")
-            f.flush()
-            os.fsync(f.fileno())
+        self.records.append(dict(key=self.key(scene_seed, grasp_index), scene=scene_seed, grasp=grasp_index, outcome=outcome, frames=frames))
 
     def episode_files(self) -> list[Path]:
         return sorted(p for p in self.dir.glob("scene*_grasp*.npz") if not p.name.endswith(".tmp.npz"))
 
     @staticmethod
-    def load(path: Path) -> dict:
-        with np.load(path) as data:
-            out = {k: data[k] for k in data.files if k != "meta"}
-            out["meta"] = json.loads(str(data["meta"]))
-        return out
+    def load(path: Path) -> Episode:
+        """The staged episode in ``path``.
 
+        Raises:
+            StagedEpisodeError: the file is truncated or corrupt (names it and what to do).
+        """
+        path = Path(path)
+        try:
+            with np.load(path) as data:
+                arrays = {k: data[k] for k in _EPISODE_ARRAYS}
+                meta = json.loads(str(data["meta"]))
+            return Episode(**arrays, **{k: meta[k] for k in _EPISODE_META})
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, KeyError, ValueError, TypeError) as err:
+            raise StagedEpisodeError(
+                f"the staged episode {path} cannot be read ({type(err).__name__}: {err}); it is truncated or "
+                f"corrupt (a full disk or a copy cut short?). Delete it and rerun the same `rtv3 generate` "
+                f"command: generation resumes and records that demonstration again"
+            ) from err
 
-def check_or_write_settings(root: Path, settings: dict) -> None:
-    """Refuse a folder that holds another dataset; record the settings of a new one."""
-    root = Path(root)
-    path = root / SETTINGS
-    if path.exists():
-        existing = json.loads(path.read_text())
-        if existing != settings:
-            diff = {k: (existing.get(k), settings.get(k)) for k in set(existing) | set(settings) if existing.get(k) != settings.get(k)}
-            raise ValueError(
-                f"{root} holds a dataset generated with other settings {diff} (existing, requested); "
-                "use another --output folder or the same settings to resume"
-            )
-        return
-    if (root / "meta").exists() or (root / "data").exists():
-        raise ValueError(f"{root} already holds a dataset that rtv3 generate did not create; choose another --output folder")
-    root.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(settings, indent=2))
+    def _import_legacy_attempts(self) -> None:
+        """Folders staged before the record store kept ``attempts.jsonl``: copy it over once."""
+        legacy = self.dir / "attempts.jsonl"
+        if not legacy.exists() or self.attempts_file.exists():
+            return
+        from rtv3_maniskill.records import RecordStore
+
+        with RecordStore(self.attempts_file, ATTEMPT_FIELDS, key=("key",)) as store:
+            for line in legacy.read_text().splitlines():
+                try:
+                    record = json.loads(line)
+                except json.JSONDecodeError:
+                    continue  # a torn last line
+                store.append({k: record[k] for k in ATTEMPT_FIELDS})
 
 
 def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progress: bool = True, end_at: str = "pregrasp") -> int:
@@ -187,38 +244,38 @@ def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progres
     hf_datasets.disable_progress_bars()
 
     root = Path(root)
-    staging = StagingArea(root)
-    files = staging.episode_files()
+    with StagingArea(root) as staging:
+        files = staging.episode_files()
     if not files:
         raise RuntimeError(f"no finished episodes in {staging.dir} to export")
     tmp_root = root / "rtv3_export_tmp"
     if tmp_root.exists():
         shutil.rmtree(tmp_root)
     dataset = LeRobotDataset.create(
-        REPO_ID, fps=F.FPS, features=dataset_features(num_points, max_grasps), root=tmp_root, robot_type="panda", use_videos=False
+        REPO_ID, fps=features.FPS, features=dataset_features(num_points, max_grasps), root=tmp_root, robot_type="panda", use_videos=False
     )
     frames = 0
     for path in tqdm(files, desc="export to LeRobot", disable=not progress, unit="episode"):
         ep = staging.load(path)
-        meta = ep["meta"]
-        if end_at == "pregrasp" and meta.get("info", {}).get("end_at", "grasp") == "grasp":
-            ep["state"], ep["action"] = end_at_pregrasp(ep["state"], ep["action"], meta["pregrasp_step"])
-        history = state_histories(ep["state"])
-        for t in range(len(ep["state"])):
+        if end_at == "pregrasp" and ep.info.get("end_at", "grasp") == "grasp":
+            state, action = end_at_pregrasp(ep.state, ep.action, ep.pregrasp_step)
+            ep = replace(ep, state=state, action=action)
+        history = state_histories(ep.state)
+        for t in range(len(ep.state)):
             dataset.add_frame(
                 {
-                    F.STATE: ep["state"][t],
-                    F.STATE_HISTORY: history[t],
-                    F.POINT_CLOUD: ep["point_cloud"],
-                    F.POINT_CLOUD_MASK: ep["point_cloud_mask"],
-                    F.GRASPS: ep["grasps"],
-                    F.GRASPS_MASK: ep["grasps_mask"],
-                    F.ACTION: ep["action"][t],
-                    F.TARGET_GRASP: np.array([meta["target_grasp_index"]], dtype=np.int64),
-                    "scene_seed": np.array([meta["scene_seed"]], dtype=np.int64),
-                    "target_object": np.array([meta["target_object"]], dtype=np.int64),
-                    "pregrasp_reached": np.array([t >= meta["pregrasp_step"]]),
-                    "task": meta["task"],
+                    features.STATE: ep.state[t],
+                    features.STATE_HISTORY: history[t].reshape(-1),
+                    features.POINT_CLOUD: ep.point_cloud.reshape(-1),
+                    features.POINT_CLOUD_MASK: ep.point_cloud_mask,
+                    features.GRASPS: ep.grasps.reshape(-1),
+                    features.GRASPS_MASK: ep.grasps_mask,
+                    features.ACTION: ep.action[t],
+                    features.TARGET_GRASP: np.array([ep.target_grasp_index], dtype=np.int64),
+                    "scene_seed": np.array([ep.scene_seed], dtype=np.int64),
+                    "target_object": np.array([ep.target_object], dtype=np.int64),
+                    "pregrasp_reached": np.array([t >= ep.pregrasp_step]),
+                    "task": ep.task,
                 }
             )
             frames += 1

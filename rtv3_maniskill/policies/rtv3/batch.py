@@ -3,9 +3,11 @@
 Accepted layouts per key (B = batch, T = history, N points, M grasps):
 
 * ``observation.state``: ``(B, T, 27)`` history, ``(B, 27)`` or ``(27,)`` single step;
+  ``observation.state_history`` ``(B, T, 27)`` or as datasets store it, flat ``(B, T * 27)``;
 * context, either the four keys ``observation.point_cloud`` ``(B[, T], N, 6)``,
   ``observation.point_cloud_mask`` ``(B[, T], N)``, ``observation.grasps`` ``(B[, T], M, 9)``,
-  ``observation.grasps_mask`` ``(B[, T], M)`` (batch dim optional when B = 1), or the packed
+  ``observation.grasps_mask`` ``(B[, T], M)`` (batch dim optional when B = 1; the cloud and the
+  grasps also flat, ``(B[, T], N * 6)`` / ``(B[, T], M * 9)``, as datasets store them), or the packed
   ``observation.environment_state`` ``(B[, T], D)`` (``features.pack_context``). With a time
   axis only the last frame is used: the scene is static (paper Sec. IV).
 """
@@ -16,7 +18,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from rtv3_maniskill import features as ft
+from rtv3_maniskill import features
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import ENV_STATE, GRASP_SUBSET_SIZES
 
 
@@ -76,70 +78,99 @@ def _single_frame(key: str, value: torch.Tensor, frame_ndim: int, tail: tuple[in
     return value
 
 
+def env_state_size_message(length: int, num_points: int, max_grasps: int) -> str:
+    """Why a packed ``observation.environment_state`` of ``length`` values does not fit a policy
+    with ``num_points`` / ``max_grasps``, naming the sizes and the ``lerobot-eval`` flags to fix."""
+    expected = features.environment_state_dim(num_points, max_grasps)
+    per_point, per_grasp = 7, features.GRASP_DIM + 1
+    guesses = []
+    if (length - max_grasps * per_grasp) % per_point == 0 and length > max_grasps * per_grasp:
+        guesses.append(f"a point cloud of {(length - max_grasps * per_grasp) // per_point} points "
+                       f"(--env.num_points) instead of the policy's num_points={num_points}")
+    if (length - num_points * per_point) % per_grasp == 0 and length > num_points * per_point:
+        guesses.append(f"a grasp set of {(length - num_points * per_point) // per_grasp} candidates "
+                       f"(--env.max_grasps) instead of the policy's max_grasps={max_grasps}")
+    hint = f"; the env sends {' or '.join(guesses)}" if guesses else ""
+    return (
+        f"'{ENV_STATE}' (the packed point cloud '{features.POINT_CLOUD}' + grasps '{features.GRASPS}') has "
+        f"{length} values per frame but this policy reads {expected} = {num_points} points x {per_point} "
+        f"+ {max_grasps} grasps x {per_grasp}{hint}. Make the env match the policy: "
+        f"--env.num_points={num_points} --env.max_grasps={max_grasps}"
+    )
+
+
 def read_context(batch: dict[str, torch.Tensor], num_points: int, max_grasps: int) -> SceneContext:
     """Scene context of the current frame from either the four context keys or the packed vector."""
-    if ft.POINT_CLOUD in batch:
-        missing = [k for k in (ft.POINT_CLOUD_MASK, ft.GRASPS, ft.GRASPS_MASK) if k not in batch]
+    if features.POINT_CLOUD in batch:
+        missing = [k for k in (features.POINT_CLOUD_MASK, features.GRASPS, features.GRASPS_MASK) if k not in batch]
         if missing:
-            raise KeyError(f"batch has '{ft.POINT_CLOUD}' but lacks {missing}")
-        pc = _single_frame(ft.POINT_CLOUD, _as_tensor(ft.POINT_CLOUD, batch[ft.POINT_CLOUD]), 2, (None, 6))
-        pc_mask = _single_frame(ft.POINT_CLOUD_MASK, _as_tensor(ft.POINT_CLOUD_MASK, batch[ft.POINT_CLOUD_MASK]), 1, (pc.shape[1],))
-        grasps = _single_frame(ft.GRASPS, _as_tensor(ft.GRASPS, batch[ft.GRASPS]), 2, (None, ft.GRASP_DIM))
-        g_mask = _single_frame(ft.GRASPS_MASK, _as_tensor(ft.GRASPS_MASK, batch[ft.GRASPS_MASK]), 1, (grasps.shape[1],))
-        for key, value in ((ft.POINT_CLOUD, pc), (ft.POINT_CLOUD_MASK, pc_mask), (ft.GRASPS, grasps), (ft.GRASPS_MASK, g_mask)):
+            raise KeyError(f"batch has '{features.POINT_CLOUD}' but lacks {missing}")
+        # A dataset stores the point cloud and the grasps flat (features.STORED_FLAT): unflatten.
+        pc = _as_tensor(features.POINT_CLOUD, batch[features.POINT_CLOUD])
+        pc = _single_frame(features.POINT_CLOUD, features.unflatten(features.POINT_CLOUD, pc), 2, (None, 6))
+        pc_mask = _single_frame(features.POINT_CLOUD_MASK, _as_tensor(features.POINT_CLOUD_MASK, batch[features.POINT_CLOUD_MASK]), 1, (pc.shape[1],))
+        grasps = _as_tensor(features.GRASPS, batch[features.GRASPS])
+        grasps = _single_frame(features.GRASPS, features.unflatten(features.GRASPS, grasps), 2, (None, features.GRASP_DIM))
+        g_mask = _single_frame(features.GRASPS_MASK, _as_tensor(features.GRASPS_MASK, batch[features.GRASPS_MASK]), 1, (grasps.shape[1],))
+        for key, value in ((features.POINT_CLOUD, pc), (features.POINT_CLOUD_MASK, pc_mask), (features.GRASPS, grasps), (features.GRASPS_MASK, g_mask)):
             check_finite(key, value)
         sizes = {pc.shape[0], pc_mask.shape[0], grasps.shape[0], g_mask.shape[0]}
         if len(sizes) != 1:
             raise ValueError(f"context keys disagree on the batch size: {sorted(sizes)}")
     elif ENV_STATE in batch:
-        dim = ft.environment_state_dim(num_points, max_grasps)
-        packed = _single_frame(ENV_STATE, _as_tensor(ENV_STATE, batch[ENV_STATE]), 1, (dim,))
+        dim = features.environment_state_dim(num_points, max_grasps)
+        packed = _as_tensor(ENV_STATE, batch[ENV_STATE])
+        if packed.ndim and packed.shape[-1] != dim:
+            raise ValueError(env_state_size_message(int(packed.shape[-1]), num_points, max_grasps))
+        packed = _single_frame(ENV_STATE, packed, 1, (dim,))
         check_finite(ENV_STATE, packed)
-        unpacked = ft.unpack_context(packed, num_points, max_grasps)
-        pc, pc_mask = unpacked[ft.POINT_CLOUD], unpacked[ft.POINT_CLOUD_MASK]
-        grasps, g_mask = unpacked[ft.GRASPS], unpacked[ft.GRASPS_MASK]
+        unpacked = features.unpack_context(packed, num_points, max_grasps)
+        pc, pc_mask = unpacked[features.POINT_CLOUD], unpacked[features.POINT_CLOUD_MASK]
+        grasps, g_mask = unpacked[features.GRASPS], unpacked[features.GRASPS_MASK]
     else:
         raise KeyError(
-            f"batch has no scene context: give '{ft.POINT_CLOUD}', '{ft.POINT_CLOUD_MASK}', '{ft.GRASPS}', "
-            f"'{ft.GRASPS_MASK}' or the packed '{ENV_STATE}'"
+            f"batch has no scene context: give '{features.POINT_CLOUD}', '{features.POINT_CLOUD_MASK}', '{features.GRASPS}', "
+            f"'{features.GRASPS_MASK}' or the packed '{ENV_STATE}'"
         )
     return SceneContext(pc, pc_mask > 0.5, grasps, g_mask > 0.5)
 
 
 def read_states(batch: dict[str, torch.Tensor]) -> torch.Tensor:
     """The state history, checked: ``observation.state_history (B, T, 27)`` when the batch has it
-    (datasets store it), else ``observation.state`` as given: ``(B, T, 27)``, ``(B, 27)`` or ``(27,)``."""
-    key = ft.STATE_HISTORY if ft.STATE_HISTORY in batch else ft.STATE
+    (datasets store it, flat ``(B, T * 27)``), else ``observation.state`` as given: ``(B, T, 27)``, ``(B, 27)`` or ``(27,)``."""
+    key = features.STATE_HISTORY if features.STATE_HISTORY in batch else features.STATE
     if key not in batch:
-        raise KeyError(f"batch lacks '{ft.STATE}'")
+        raise KeyError(f"batch lacks '{features.STATE}'")
     states = _as_tensor(key, batch[key])
-    if key == ft.STATE_HISTORY and states.ndim == 2:
-        states = states[None]
-    if states.ndim not in (1, 2, 3) or states.shape[-1] != ft.STATE_DIM:
+    if key == features.STATE_HISTORY:  # stored flat (T * 27,) by datasets (features.STORED_FLAT)
+        states = features.unflatten(key, states)
+        if states.ndim == 2:
+            states = states[None]
+    if states.ndim not in (1, 2, 3) or states.shape[-1] != features.STATE_DIM:
         raise ValueError(
-            f"'{ft.STATE}' has shape {tuple(states.shape)}; expected (B, T, {ft.STATE_DIM}), "
-            f"(B, {ft.STATE_DIM}) or ({ft.STATE_DIM},)"
+            f"'{features.STATE}' has shape {tuple(states.shape)}; expected (B, T, {features.STATE_DIM}), "
+            f"(B, {features.STATE_DIM}) or ({features.STATE_DIM},)"
         )
-    check_finite(ft.STATE, states)
-    quat_norm = states[..., ft.EE_QUAT].norm(dim=-1)
+    check_finite(features.STATE, states)
+    quat_norm = states[..., features.EE_QUAT].norm(dim=-1)
     if bool((quat_norm < 1e-6).any()):
-        raise ValueError(f"'{ft.STATE}' holds a zero end-effector quaternion (entries 3:7)")
+        raise ValueError(f"'{features.STATE}' holds a zero end-effector quaternion (entries 3:7)")
     return states
 
 
 def read_actions(batch: dict[str, torch.Tensor], batch_size: int, horizon: int) -> tuple[torch.Tensor, torch.Tensor]:
     """``action (B, H, 6)`` and its validity ``(B, H)`` bool from ``action_is_pad`` (all valid if absent)."""
-    if ft.ACTION not in batch:
-        raise KeyError(f"training batch lacks '{ft.ACTION}'")
-    actions = _as_tensor(ft.ACTION, batch[ft.ACTION])
+    if features.ACTION not in batch:
+        raise KeyError(f"training batch lacks '{features.ACTION}'")
+    actions = _as_tensor(features.ACTION, batch[features.ACTION])
     if tuple(actions.shape) != (batch_size, horizon, 6):
-        raise ValueError(f"'{ft.ACTION}' has shape {tuple(actions.shape)}; expected ({batch_size}, {horizon}, 6)")
-    check_finite(ft.ACTION, actions)
-    pad = batch.get(f"{ft.ACTION}_is_pad")
+        raise ValueError(f"'{features.ACTION}' has shape {tuple(actions.shape)}; expected ({batch_size}, {horizon}, 6)")
+    check_finite(features.ACTION, actions)
+    pad = batch.get(f"{features.ACTION}_is_pad")
     if pad is None:
         return actions, torch.ones(batch_size, horizon, dtype=torch.bool, device=actions.device)
     if tuple(pad.shape) != (batch_size, horizon):
-        raise ValueError(f"'{ft.ACTION}_is_pad' has shape {tuple(pad.shape)}; expected ({batch_size}, {horizon})")
+        raise ValueError(f"'{features.ACTION}_is_pad' has shape {tuple(pad.shape)}; expected ({batch_size}, {horizon})")
     return actions, ~pad.bool()
 
 

@@ -54,10 +54,11 @@ class RTV3Policy(PreTrainedPolicy):
             config.output_features = config.default_output_features()
         # N and M follow the dataset when it stores the context keys separately (the packed
         # environment_state cannot be split without them: set num_points / max_grasps then).
+        # (``(N, 6)``, or flat ``(N * 6,)`` as datasets store it: features.rows_of.)
         if ft.POINT_CLOUD in config.input_features:
-            config.num_points = int(config.input_features[ft.POINT_CLOUD].shape[0])
+            config.num_points = ft.rows_of(ft.POINT_CLOUD, config.input_features[ft.POINT_CLOUD].shape)
         if ft.GRASPS in config.input_features:
-            config.max_grasps = int(config.input_features[ft.GRASPS].shape[0])
+            config.max_grasps = ft.rows_of(ft.GRASPS, config.input_features[ft.GRASPS].shape)
         config.validate_features()
         self.config = config
         self.model = RTV3Model(config)
