@@ -54,6 +54,10 @@ from rtv3_maniskill.tasks.twist_controller import PandaTwist  # noqa: F401  (reg
 REST_QPOS = np.array([0.0, np.pi / 8, 0.0, -np.pi * 5 / 8, 0.0, np.pi * 3 / 4, np.pi / 4, 0.04, 0.04])
 
 
+CLOUD_SEED_OFFSET = 104729
+"""Added to the episode seed for the camera cloud's resampling stream (apart from the scene's)."""
+
+
 @register_env("GraspClutter-v1", max_episode_steps=150)
 class GraspClutterEnv(BaseEnv):
     """Reach the target grasp's pre-grasp pose in clutter (RT-V3 simulation setup).
@@ -175,7 +179,7 @@ class GraspClutterEnv(BaseEnv):
             generator = torch.Generator().manual_seed(int(self._episode_seed[i]))
             keep = torch.ones(surface.shape[:2], dtype=torch.bool)
             cloud, cloud_mask = process_point_cloud(
-                surface[..., :3], surface[..., 3:], keep, self.num_points, self.voxel_size, generator
+                surface[..., :3], surface[..., 3:], keep, self.num_points, self.voxel_size, [generator]
             )
             surface_clouds.append(cloud[0])
             surface_masks.append(cloud_mask[0])
@@ -370,7 +374,10 @@ class GraspClutterEnv(BaseEnv):
         rgb = raw["rgb"].float() / 255.0
         seg = raw["segmentation"][..., 0]
         keep = (seg != 0) & ~torch.isin(seg, self._robot_segmentation_ids)
-        return process_point_cloud(xyz, rgb, keep, self.num_points, self.voxel_size)
+        # The resampling draws from the episode's seed: the same seed gives the same cloud.
+        seeds = self._episode_seed if self._episode_seed is not None else [0] * self.num_envs
+        generators = [torch.Generator().manual_seed(int(seed) + CLOUD_SEED_OFFSET) for seed in seeds]
+        return process_point_cloud(xyz, rgb, keep, self.num_points, self.voxel_size, generators)
 
     @property
     def _robot_segmentation_ids(self) -> torch.Tensor:

@@ -8,6 +8,8 @@ The table top is cropped away (only points above ``z_min``), as are robot points
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 
@@ -68,17 +70,21 @@ def process_point_cloud(
     keep: torch.Tensor,
     num_points: int,
     voxel_size: float = DEFAULT_VOXEL_SIZE,
-    generator: torch.Generator | None = None,
+    generators: Sequence[torch.Generator | None] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Batched: ``xyz (B, P, 3)`` world, ``rgb (B, P, 3)`` in [0, 1], ``keep (B, P)`` bool.
 
-    Crops to the workspace, voxel-downsamples and resamples each cloud.
+    Crops to the workspace, voxel-downsamples and resamples each cloud; cloud ``b`` draws its
+    resampling from ``generators[b]`` (None: torch's global generator, not reproducible).
     Returns ``(B, num_points, 6)`` and a ``(B, num_points)`` mask.
     """
+    if generators is not None and len(generators) != xyz.shape[0]:
+        raise ValueError(f"need one generator per cloud ({xyz.shape[0]}), got {len(generators)}")
     keep = keep & workspace_mask(xyz)
     clouds, masks = [], []
     for b in range(xyz.shape[0]):
         points = torch.cat([xyz[b][keep[b]], rgb[b][keep[b]]], -1).float()
+        generator = generators[b] if generators is not None else None
         cloud, mask = resample(voxel_downsample(points, voxel_size), num_points, generator)
         clouds.append(cloud)
         masks.append(mask)
