@@ -25,10 +25,9 @@ import time
 
 import torch
 
-from rtv3_maniskill import features as ft
+from rtv3_maniskill import features
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
-
 
 SYNTHETIC_CLOUDS = ("table-box", "surface", "volume")
 
@@ -54,10 +53,10 @@ def synthetic_batch(batch: int, cfg: RTV3Config, seed: int = 0, cloud: str = "ta
     """A batch with a straight-line EE history, points laid out as ``cloud``, grasps around the box."""
     g = torch.Generator().manual_seed(seed)
     t, h, n, m = cfg.n_obs_steps, cfg.horizon, cfg.num_points, cfg.max_grasps
-    state = torch.zeros(batch, t, ft.STATE_DIM)
+    state = torch.zeros(batch, t, features.STATE_DIM)
     start = torch.tensor([0.3, 0.0, 0.4]) + 0.05 * torch.randn(batch, 1, 3, generator=g)
     velocity = torch.tensor([0.0, 0.05, -0.1])
-    state[..., ft.EE_POS] = start + velocity * ft.DT * torch.arange(t)[None, :, None]
+    state[..., features.EE_POS] = start + velocity * features.DT * torch.arange(t)[None, :, None]
     state[..., 3] = 0.0
     state[..., 4] = 1.0  # gripper pointing down (180 deg about x)
     state[..., 7:10] = velocity * torch.tensor([1.0, -1.0, -1.0])
@@ -67,14 +66,14 @@ def synthetic_batch(batch: int, cfg: RTV3Config, seed: int = 0, cloud: str = "ta
     grasp_quat = torch.tensor([0.0, 1.0, 0.0, 0.0]).expand(batch, m, 4)
     grasps = torch.cat([grasp_pos, grasp_quat, torch.full((batch, m, 1), 0.05), torch.ones(batch, m, 1)], -1)
     return {
-        ft.STATE: state,
-        ft.POINT_CLOUD: point_cloud,
-        ft.POINT_CLOUD_MASK: torch.ones(batch, n),
-        ft.GRASPS: grasps,
-        ft.GRASPS_MASK: torch.ones(batch, m),
-        ft.ACTION: (velocity * torch.tensor([1.0, -1.0, -1.0])).repeat(batch, h, 2) * torch.tensor([1.0] * 3 + [0.0] * 3),
-        f"{ft.ACTION}_is_pad": torch.zeros(batch, h, dtype=torch.bool),
-        ft.TARGET_GRASP: torch.zeros(batch, 1, dtype=torch.long),  # training applies the grasp-subset augmentation
+        features.STATE: state,
+        features.POINT_CLOUD: point_cloud,
+        features.POINT_CLOUD_MASK: torch.ones(batch, n),
+        features.GRASPS: grasps,
+        features.GRASPS_MASK: torch.ones(batch, m),
+        features.ACTION: (velocity * torch.tensor([1.0, -1.0, -1.0])).repeat(batch, h, 2) * torch.tensor([1.0] * 3 + [0.0] * 3),
+        f"{features.ACTION}_is_pad": torch.zeros(batch, h, dtype=torch.bool),
+        features.TARGET_GRASP: torch.zeros(batch, 1, dtype=torch.long),  # training applies the grasp-subset augmentation
     }
 
 
@@ -83,7 +82,7 @@ def synthetic_observation(cfg: RTV3Config, cloud: str = "table-box") -> dict[str
     the scene context."""
     full = synthetic_batch(1, cfg, cloud=cloud)
     single = {k: v for k, v in full.items() if k.startswith("observation.")}
-    single[ft.STATE] = full[ft.STATE][:, -1]  # one control step: (1, 27)
+    single[features.STATE] = full[features.STATE][:, -1]  # one control step: (1, 27)
     return single
 
 
@@ -128,7 +127,7 @@ def rendered_scene_observation(scene_seed: int, cfg: RTV3Config) -> dict[str, to
                    num_points=cfg.num_points, max_grasps=cfg.max_grasps)
     try:
         obs, _ = env.reset(seed=scene_seed)
-        return ft.observation_from_env(obs)
+        return features.observation_from_env(obs)
     finally:
         env.close()
 
@@ -198,8 +197,8 @@ def main() -> None:
     else:
         single = rendered_scene_observation(args.scene_seed, cfg)
         inputs = f"scene {args.scene_seed}"
-    print(f"inputs: {inputs}, {int(single[ft.POINT_CLOUD_MASK].sum())} of {cfg.num_points} point slots real, "
-          f"{int(single[ft.GRASPS_MASK].sum())} of {cfg.max_grasps} grasp slots")
+    print(f"inputs: {inputs}, {int(single[features.POINT_CLOUD_MASK].sum())} of {cfg.num_points} point slots real, "
+          f"{int(single[features.GRASPS_MASK].sum())} of {cfg.max_grasps} grasp slots")
     policy.eval()
     policy.reset()
     if policy.model.point_encoder is not None:

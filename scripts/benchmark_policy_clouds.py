@@ -16,8 +16,6 @@ import argparse
 import statistics
 
 import torch
-from tqdm import tqdm
-
 from benchmark_policy import (
     SYNTHETIC_CLOUDS,
     first_stage_tokens,
@@ -25,7 +23,9 @@ from benchmark_policy import (
     synthetic_observation,
     time_select_action,
 )
-from rtv3_maniskill import features as ft
+from tqdm import tqdm
+
+from rtv3_maniskill import features
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
 
@@ -64,7 +64,7 @@ def main() -> None:
     print("| cloud | real points | stem pooling (default): tokens, ms | authors' layout: tokens, ms |")
     print("| --- | --- | --- | --- |")
     for cloud, obs in observations.items():
-        real = int(obs[ft.POINT_CLOUD_MASK].sum())
+        real = int(obs[features.POINT_CLOUD_MASK].sum())
         cells = [f"{tokens[(stem, cloud)]}, {statistics.median(medians[(stem, cloud)]):.2f}" for stem in (1, 0)]
         print(f"| {cloud} | {real} | {cells[0]} | {cells[1]} |")
 

@@ -11,8 +11,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from rtv3_maniskill import features as ft
-from rtv3_maniskill import se3
+from rtv3_maniskill import features, se3
 from rtv3_maniskill.cli import main
 from rtv3_maniskill.experiments import planning, prediction
 
@@ -123,13 +122,13 @@ def test_ground_truth_poses_are_the_integrated_recorded_twists(tiny_dataset):
     """The recorded future poses equal the recorded twists integrated from the current pose (T Exp(a dt))."""
     episodes, held_out = prediction.load_episodes(tiny_dataset, all_scenes=True)
     assert episodes and held_out["scene_seeds"] == [0]
-    windows = prediction.make_windows(episodes, ft.HISTORY_STEPS, ft.HORIZON_STEPS)
-    assert len(windows) == sum(len(ep.states) - ft.HISTORY_STEPS - ft.HORIZON_STEPS + 1 for ep in episodes)
-    batch, current, gt = prediction.window_batch(episodes, windows[::7], ft.HISTORY_STEPS, ft.HORIZON_STEPS)
-    assert batch[ft.STATE].shape == (len(windows[::7]), ft.HISTORY_STEPS, ft.STATE_DIM)
+    windows = prediction.make_windows(episodes, features.HISTORY_STEPS, features.HORIZON_STEPS)
+    assert len(windows) == sum(len(ep.states) - features.HISTORY_STEPS - features.HORIZON_STEPS + 1 for ep in episodes)
+    batch, current, gt = prediction.window_batch(episodes, windows[::7], features.HISTORY_STEPS, features.HORIZON_STEPS)
+    assert batch[features.STATE].shape == (len(windows[::7]), features.HISTORY_STEPS, features.STATE_DIM)
     # observation.state's twist at t+1 is the action realised over step t.
     twists = torch.stack(
-        [torch.as_tensor(episodes[i].states[t + 1 : t + 1 + ft.HORIZON_STEPS, ft.EE_TWIST]) for i, t in windows[::7]]
+        [torch.as_tensor(episodes[i].states[t + 1 : t + 1 + features.HORIZON_STEPS, features.EE_TWIST]) for i, t in windows[::7]]
     )
     integrated = prediction.future_poses(current, twists)
     assert prediction.displacement_errors(gt, integrated).max() < 0.5  # < 0.5e-3 of pose distance
@@ -269,11 +268,11 @@ class _PreGraspOracle:
         pass
 
     def select_action(self, obs: dict) -> torch.Tensor:
-        visible = torch.nonzero(obs[ft.GRASPS_MASK][0] > 0.5).flatten()
+        visible = torch.nonzero(obs[features.GRASPS_MASK][0] > 0.5).flatten()
         self.shown.add(len(visible))
-        g = obs[ft.GRASPS][0, visible[0]].double()
-        state = obs[ft.STATE][0].double()
-        tcp = se3.pose_to_matrix(state[ft.EE_POS], state[ft.EE_QUAT])
+        g = obs[features.GRASPS][0, visible[0]].double()
+        state = obs[features.STATE][0].double()
+        tcp = se3.pose_to_matrix(state[features.EE_POS], state[features.EE_QUAT])
         pre = planning.pregrasp_poses(se3.pose_to_matrix(g[:3], g[3:7]))
         twin = se3.rotate_about_z(pre, math.pi)
         goal = pre if se3.so3_log(tcp[:3, :3].T @ pre[:3, :3]).norm() <= se3.so3_log(tcp[:3, :3].T @ twin[:3, :3]).norm() else twin

@@ -11,8 +11,7 @@ import pytest
 import torch
 
 import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
-from rtv3_maniskill import features as ft
-from rtv3_maniskill import se3
+from rtv3_maniskill import features, se3
 from rtv3_maniskill.experiments.planning import context_mask
 from rtv3_maniskill.policies.rtv3 import load_policy
 from rtv3_maniskill.tasks.grasp_sampler import PREGRASP_DISTANCE
@@ -33,18 +32,18 @@ def test_shipped_checkpoint_heads_for_the_goal_it_is_given(policy):
     try:
         obs, _ = env.reset(seed=900000)
         base = env.unwrapped
-        observation = ft.observation_from_env(obs)
+        observation = features.observation_from_env(obs)
         cloud, cloud_mask = base.capture_point_cloud()  # the depth-camera cloud the data was made with
-        observation[ft.POINT_CLOUD], observation[ft.POINT_CLOUD_MASK] = cloud.float(), cloud_mask.float()
+        observation[features.POINT_CLOUD], observation[features.POINT_CLOUD_MASK] = cloud.float(), cloud_mask.float()
         valid = torch.nonzero(base.grasps_mask[0] > 0.5).flatten().tolist()
         assert len(valid) >= 4
         tcp = base.tcp_pose_matrix[0].double()
         displacements, towards = [], []
         for g in valid[:: max(1, len(valid) // 8)]:
             policy.reset()
-            ctx = dict(observation, **{ft.GRASPS_MASK: context_mask(observation[ft.GRASPS_MASK], g, "target")})
+            ctx = dict(observation, **{features.GRASPS_MASK: context_mask(observation[features.GRASPS_MASK], g, "target")})
             chunk = policy.predict_action_chunk(ctx)[0].double()  # (H, 6) body twists
-            end = se3.integrate_body_twists(tcp, chunk, ft.DT)[-1]
+            end = se3.integrate_body_twists(tcp, chunk, features.DT)[-1]
             moved = end[:3, 3] - tcp[:3, 3]
             pregrasp = se3.translate_along_z(base.grasp_poses[0, g].double(), -PREGRASP_DISTANCE)[:3, 3]
             displacements.append(moved)

@@ -31,8 +31,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from rtv3_maniskill import features as ft
-from rtv3_maniskill import se3
+from rtv3_maniskill import features, se3
 
 METRIC_SCALE = 1000.0
 """The paper reports pose distances x1000."""
@@ -68,7 +67,7 @@ def ade_fde(errors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return errors.mean(-1), errors[..., -1]
 
 
-def future_poses(current: torch.Tensor, twists: torch.Tensor, dt: float = ft.DT) -> torch.Tensor:
+def future_poses(current: torch.Tensor, twists: torch.Tensor, dt: float = features.DT) -> torch.Tensor:
     """Poses ``(B, [K,] H, 4, 4)`` reached from ``current (B, 4, 4)`` by body twists ``(B, [K,] H, 6)``."""
     if current.ndim != 3 or tuple(current.shape[1:]) != (4, 4):
         raise ValueError(f"current must be (B, 4, 4), got {tuple(current.shape)}")
@@ -116,7 +115,7 @@ def baseline_twists(current_state: torch.Tensor, horizon: int) -> dict[str, torc
     ``stand_still``: zero twist; ``constant_velocity``: the body twist realised over the last
     step, repeated. A trained prior should beat both.
     """
-    last = current_state[:, ft.EE_TWIST]
+    last = current_state[:, features.EE_TWIST]
     return dict(
         stand_still=torch.zeros(last.shape[0], horizon, 6, dtype=last.dtype),
         constant_velocity=last[:, None].expand(-1, horizon, 6),
@@ -201,16 +200,16 @@ def load_episodes(
         raise FileNotFoundError(f"no LeRobot dataset at {root} (missing meta/info.json); make one with `rtv3 generate`")
     dataset = LeRobotDataset(REPO_ID, root=root)
     hf = dataset.hf_dataset
-    needed = [ft.STATE, "episode_index", "index", "scene_seed", ft.POINT_CLOUD, ft.GRASPS]
+    needed = [features.STATE, "episode_index", "index", "scene_seed", features.POINT_CLOUD, features.GRASPS]
     missing = [k for k in needed if k not in hf.column_names]
     if missing:
         raise ValueError(f"dataset at {root} lacks the columns {missing} (not an `rtv3 generate` dataset?)")
-    table = hf.select_columns([ft.STATE, "episode_index", "scene_seed", "index"]).with_format("numpy")[:]
+    table = hf.select_columns([features.STATE, "episode_index", "scene_seed", "index"]).with_format("numpy")[:]
     episode_of = np.asarray(table["episode_index"]).reshape(-1)
     scene_of = np.asarray(table["scene_seed"]).reshape(-1)
-    states = np.asarray(table[ft.STATE], dtype=np.float64)
+    states = np.asarray(table[features.STATE], dtype=np.float64)
     chosen = set(select_scene_seeds(scene_of.tolist(), seed_range, last_fraction, all_scenes))
-    context_keys = [ft.POINT_CLOUD, ft.POINT_CLOUD_MASK, ft.GRASPS, ft.GRASPS_MASK]
+    context_keys = [features.POINT_CLOUD, features.POINT_CLOUD_MASK, features.GRASPS, features.GRASPS_MASK]
     context_columns = hf.select_columns(context_keys).with_format("numpy")
     episodes = []
     order = np.lexsort((np.asarray(table["index"]).reshape(-1), episode_of))  # grouped by episode, in frame order
@@ -225,10 +224,10 @@ def load_episodes(
                 episode_index=int(ep),
                 scene_seed=scene,
                 states=states[rows],
-                point_cloud=ft.unflatten(ft.POINT_CLOUD, np.asarray(context[ft.POINT_CLOUD], dtype=np.float32)),
-                point_cloud_mask=np.asarray(context[ft.POINT_CLOUD_MASK], dtype=np.float32),
-                grasps=ft.unflatten(ft.GRASPS, np.asarray(context[ft.GRASPS], dtype=np.float32)),
-                grasps_mask=np.asarray(context[ft.GRASPS_MASK], dtype=np.float32),
+                point_cloud=features.unflatten(features.POINT_CLOUD, np.asarray(context[features.POINT_CLOUD], dtype=np.float32)),
+                point_cloud_mask=np.asarray(context[features.POINT_CLOUD_MASK], dtype=np.float32),
+                grasps=features.unflatten(features.GRASPS, np.asarray(context[features.GRASPS], dtype=np.float32)),
+                grasps_mask=np.asarray(context[features.GRASPS_MASK], dtype=np.float32),
             )
         )
     if seed_range is not None:
@@ -249,7 +248,7 @@ def make_windows(episodes: Sequence[EpisodeData], history: int, horizon: int) ->
 
 def _state_poses(states: np.ndarray) -> torch.Tensor:
     s = torch.as_tensor(states, dtype=torch.float64)
-    return se3.pose_to_matrix(s[..., ft.EE_POS], s[..., ft.EE_QUAT])
+    return se3.pose_to_matrix(s[..., features.EE_POS], s[..., features.EE_QUAT])
 
 
 def window_batch(
@@ -266,11 +265,11 @@ def window_batch(
         grasps.append(ep.grasps)
         grasp_masks.append(ep.grasps_mask)
     batch = {
-        ft.STATE: torch.as_tensor(np.stack(states), dtype=torch.float32),
-        ft.POINT_CLOUD: torch.as_tensor(np.stack(clouds)),
-        ft.POINT_CLOUD_MASK: torch.as_tensor(np.stack(cloud_masks)),
-        ft.GRASPS: torch.as_tensor(np.stack(grasps)),
-        ft.GRASPS_MASK: torch.as_tensor(np.stack(grasp_masks)),
+        features.STATE: torch.as_tensor(np.stack(states), dtype=torch.float32),
+        features.POINT_CLOUD: torch.as_tensor(np.stack(clouds)),
+        features.POINT_CLOUD_MASK: torch.as_tensor(np.stack(cloud_masks)),
+        features.GRASPS: torch.as_tensor(np.stack(grasps)),
+        features.GRASPS_MASK: torch.as_tensor(np.stack(grasp_masks)),
     }
     poses = _state_poses(np.stack(futures))  # (B, H + 1, 4, 4)
     return batch, poses[:, 0], poses[:, 1:]
@@ -348,10 +347,10 @@ def evaluate_windows(
         per_step += metrics["errors_ml"].sum(0)
         if hasattr(policy, "predict_step0_mixture"):
             mixture = policy.predict_step0_mixture(batch, update_history=False)
-            true_v = se3.body_twist(current, gt[:, 0], ft.DT)[:, :3]
+            true_v = se3.body_twist(current, gt[:, 0], features.DT)[:, :3]
             for key, value in step0_calibration(mixture, true_v).items():
                 calibration.setdefault(key, []).append(value.double().cpu())
-        for name, twists in baseline_twists(batch[ft.STATE][:, -1].double(), horizon).items():
+        for name, twists in baseline_twists(batch[features.STATE][:, -1].double(), horizon).items():
             ade, fde = ade_fde(displacement_errors(gt, future_poses(current, twists)))
             baseline_sums[f"{name}_ade"] += float(ade.sum())
             baseline_sums[f"{name}_fde"] += float(fde.sum())

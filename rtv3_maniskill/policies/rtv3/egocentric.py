@@ -14,13 +14,12 @@ import math
 
 import torch
 
-from rtv3_maniskill import features as ft
-from rtv3_maniskill import se3
+from rtv3_maniskill import features, se3
 
 
 def state_poses(states: torch.Tensor) -> torch.Tensor:
     """``(..., 27)`` observation.state -> EE poses ``(..., 4, 4)`` in the world frame."""
-    return se3.pose_to_matrix(states[..., ft.EE_POS], states[..., ft.EE_QUAT])
+    return se3.pose_to_matrix(states[..., features.EE_POS], states[..., features.EE_QUAT])
 
 
 def uniform_se3_noise(like: torch.Tensor, first: float, last: float) -> torch.Tensor:

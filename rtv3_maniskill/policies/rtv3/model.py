@@ -15,8 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from rtv3_maniskill import features as ft
-from rtv3_maniskill import se3
+from rtv3_maniskill import features, se3
 from rtv3_maniskill.policies.rtv3 import egocentric
 from rtv3_maniskill.policies.rtv3.batch import RTV3Inputs
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
@@ -122,7 +121,7 @@ class RTV3Model(nn.Module):
             relative = torch.cat([relative, grasp_relative], 1)
         logs = se3.se3_log(relative)  # one batched log map for history and grasps
         steps = poses.shape[1]
-        twists = states[..., ft.EE_TWIST]
+        twists = states[..., features.EE_TWIST]
         if augment and (c.twist_noise_linear > 0 or c.twist_noise_angular > 0):
             twists = egocentric.perturb_twists(twists, c.twist_noise_linear, c.twist_noise_angular)
         x = egocentric.history_dynamics(relative[:, :steps], twists, logs[:, :steps])  # x_{-T+1:0}
@@ -146,7 +145,7 @@ class RTV3Model(nn.Module):
 
     def encode_future(self, actions: torch.Tensor) -> torch.Tensor:
         """``h+ = BiLSTM(x_{1:H})`` from the action window ``(B, H, 6)`` SI -> ``(B, 2 * hidden)``."""
-        x_future = egocentric.future_dynamics(actions, ft.DT)
+        x_future = egocentric.future_dynamics(actions, features.DT)
         _, (h_last, _) = self.future_encoder(self._dynamics_in(x_future))
         return torch.cat([h_last[0], h_last[1]], -1)
 
