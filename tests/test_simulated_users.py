@@ -1,4 +1,4 @@
-"""Simulated users (paper appendix "Simulated User", NOTES.md)."""
+"""Simulated users (paper appendix "Simulated User", docs/PAPER_NOTES.md)."""
 
 from __future__ import annotations
 

@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ood-covariance", choices=["class", "predictive"], default=None,
                         help="RT-V3 OOD gate distance under the class covariance (default) or class + user noise")
     parser.add_argument("--ood-dofs", choices=["twist", "translation"], default=None,
-                        help="RT-V3 OOD gate on the whole twist (default) or on the translation only (NOTES.md)")
+                        help="RT-V3 OOD gate on the whole twist (default) or on the translation only (docs/PAPER_NOTES.md)")
     parser.add_argument("--uncommanded-axes", choices=["missing", "zero"], default=None,
                         help="zero axes of a user command: missing (default; the prior fills them in) or "
                              "observations of zero velocity (the paper's reading)")

@@ -73,17 +73,17 @@ class SharedControlConfig:
     ood_steps: int = 3
     """Steps after an OOD command during which the user's command is executed."""
     ood_covariance: str = "class"
-    """Covariance of the OOD test's Mahalanobis distance: ``"class"`` (``Sigma_k``, NOTES.md's
+    """Covariance of the OOD test's Mahalanobis distance: ``"class"`` (``Sigma_k``, docs/PAPER_NOTES.md's
     "distance to the nearest class") or ``"predictive"`` (``Sigma_k + S_u``); see
     :func:`posterior.is_out_of_distribution`."""
     ood_dofs: str = "twist"
     """What the OOD test looks at: ``"twist"`` (translation and rotation) or ``"translation"``
-    (NOTES.md); see :func:`posterior.is_out_of_distribution`."""
+    (docs/PAPER_NOTES.md); see :func:`posterior.is_out_of_distribution`."""
     uncommanded_axes: str = "missing"
     """How a zero axis of a user command (``|u_i| <= input_threshold``) of a command that is not
     zero altogether is read: ``"missing"``, an axis the device does not give (a mode-switching
     or single-axis user), so neither the fusion nor the OOD test uses it and the prior fills it
-    in; ``"zero"`` (the paper's and NOTES.md's reading), an observation "hold still" on that axis."""
+    in; ``"zero"`` (the paper's and docs/PAPER_NOTES.md's reading), an observation "hold still" on that axis."""
     user_trans_var: float = 0.03
     """Initial S_u diagonal ((m/s)^2)."""
     user_rot_var: float = 0.1
@@ -93,7 +93,7 @@ class SharedControlConfig:
     user_cov_decay: float = 0.8
     user_cov_floor: float = 0.01
     reweight_rotation_at: str = "prior"
-    """See :func:`posterior.fuse_user_command` ("prior" = paper, "fused" = NOTES.md)."""
+    """See :func:`posterior.fuse_user_command` ("prior" = paper, "fused" = docs/PAPER_NOTES.md)."""
     mode_search_starts: int = 3
     mode_search_iters: int = 10
     """Most mean-shift iterations of the mode search (:func:`posterior.mixture_mode`)."""
@@ -208,7 +208,7 @@ def surface_distance(observation: dict[str, Any]) -> torch.Tensor:
 def most_likely_twist(prior: posterior.FactorizedTwistMixture) -> torch.Tensor:
     """The prior's most likely step-0 action ``(B, 6)``: the argmax class, the mean of its
     translation Gaussian, then the mean of its rotation Gaussian given that translation
-    (NOTES.md "Most-Likely"; the same as the policy's ``select_action``). ``prior`` is
+    (docs/PAPER_NOTES.md "Most-Likely"; the same as the policy's ``select_action``). ``prior`` is
     :func:`posterior.prior_twist_mixture`, whose rotation Gaussians already sit at the
     translation means, so no second pass through the network is needed."""
     best = prior.log_weights.argmax(-1)
