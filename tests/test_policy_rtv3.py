@@ -764,6 +764,14 @@ def test_lerobot_dataset_factory_and_processors_train(tmp_path):
     action = postprocessor(policy.select_action(preprocessor(obs)))
     assert action.shape == (1, 6) and torch.isfinite(action).all()
 
+    # The model card names the training dataset, also after a reload and a second save.
+    from huggingface_hub import ModelCard
+
+    policy.save_pretrained(tmp_path / "saved")
+    assert ModelCard.load(tmp_path / "saved" / "README.md").data.datasets == "local/rtv3_test"
+    RTV3Policy.from_pretrained(tmp_path / "saved").save_pretrained(tmp_path / "resaved")
+    assert ModelCard.load(tmp_path / "resaved" / "README.md").data.datasets == "local/rtv3_test"
+
 
 def test_lerobot_train_cli_trains_and_checkpoints(tmp_path):
     """``lerobot-train --policy.type=rtv3`` end to end, then reload the checkpoint with its processors."""
@@ -794,6 +802,9 @@ def test_lerobot_train_cli_trains_and_checkpoints(tmp_path):
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     checkpoint = tmp_path / "out" / "checkpoints" / "last" / "pretrained_model"
     assert (checkpoint / "README.md").is_file()
+    from huggingface_hub import ModelCard
+
+    assert ModelCard.load(checkpoint / "README.md").data.datasets == "local/rtv3_test"  # not "local"
     policy = RTV3Policy.from_pretrained(checkpoint)
     assert int(policy.train_step) == 2 and policy.config.num_points == 64
     preprocessor, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(checkpoint))
@@ -801,3 +812,40 @@ def test_lerobot_train_cli_trains_and_checkpoints(tmp_path):
     obs = {k: torch.as_tensor(frame[k]) for k in policy.config.input_features}
     action = postprocessor(policy.select_action(preprocessor(obs)))
     assert action.shape == (1, 6) and torch.isfinite(action).all()
+
+
+def test_env_context_size_mismatch_names_the_sizes_and_the_eval_flags():
+    """``lerobot-eval --env.type=rtv3_clutter`` with another point count / grasp count than the
+    policy's: the error names the feature, both sizes and ``--env.num_points`` / ``--env.max_grasps``."""
+    from lerobot.envs.factory import make_env
+    from lerobot.envs.utils import preprocess_observation
+
+    from rtv3_maniskill.lerobot_env import RTV3ClutterEnvConfig
+
+    envs = make_env(RTV3ClutterEnvConfig(num_points=64, max_grasps=8, episode_length=3), n_envs=1)
+    vec_env = next(iter(next(iter(envs.values())).values()))
+    try:
+        observation, _ = vec_env.reset(seed=0)
+    finally:
+        vec_env.close()
+    batch = preprocess_observation(observation)  # what lerobot-eval hands the policy's preprocessor
+    assert set(batch) == {ft.STATE, "observation.environment_state"}
+
+    policy = make_policy(num_points=32, max_grasps=8).eval()
+    with pytest.raises(ValueError) as points:
+        policy.select_action(batch)
+    message = str(points.value)
+    assert "observation.environment_state" in message and "observation.point_cloud" in message
+    assert "64 points (--env.num_points)" in message and "num_points=32" in message
+    assert "--env.num_points=32" in message and "--env.max_grasps=8" in message
+
+    policy = make_policy(num_points=64, max_grasps=16).eval()
+    with pytest.raises(ValueError) as grasps:
+        policy.select_action(batch)
+    message = str(grasps.value)
+    assert "8 candidates (--env.max_grasps)" in message and "max_grasps=16" in message
+    assert "--env.max_grasps=16" in message
+
+    # the sizes that match run
+    policy = make_policy(num_points=64, max_grasps=8).eval()
+    assert policy.select_action(batch).shape == (1, 6)

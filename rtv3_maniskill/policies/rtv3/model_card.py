@@ -1,4 +1,45 @@
-"""Model-card template for saved RT-V3 policies (Jinja, rendered by ``huggingface_hub.ModelCard``)."""
+"""Model card of saved RT-V3 policies: the template (Jinja, rendered by ``huggingface_hub.ModelCard``)
+and the training dataset it names."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def training_dataset_repo_id(dataset_meta=None, pretrained_dir: str | Path | None = None) -> str | None:
+    """Repo id of the dataset a policy was trained on, for the card's ``datasets:`` field.
+
+    From LeRobot's dataset metadata (``lerobot-train`` hands it to the policy as
+    ``dataset_meta``), else from a local checkpoint folder: its ``train_config.json``
+    (``dataset.repo_id``, written by ``lerobot-train``) or the ``datasets:`` of its model card.
+    ``None`` when unknown (the card then names no dataset rather than a wrong one).
+    """
+    repo_id = getattr(dataset_meta, "repo_id", None)
+    if repo_id:
+        return str(repo_id)
+    if pretrained_dir is None or not Path(pretrained_dir).is_dir():
+        return None
+    folder = Path(pretrained_dir)
+    train_config = folder / "train_config.json"
+    if train_config.is_file():
+        try:
+            repo_id = (json.loads(train_config.read_text()).get("dataset") or {}).get("repo_id")
+        except (json.JSONDecodeError, AttributeError):
+            repo_id = None
+        if repo_id:
+            return str(repo_id)
+    readme = folder / "README.md"
+    if readme.is_file():
+        from huggingface_hub import ModelCard
+
+        datasets = ModelCard.load(readme).data.datasets
+        if isinstance(datasets, str):
+            return datasets
+        if datasets:
+            return str(datasets[0])
+    return None
+
 
 MODEL_CARD_TEMPLATE = """---
 {{ card_data }}

@@ -34,7 +34,7 @@ from rtv3_maniskill.policies.rtv3.batch import (
 )
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.model import RTV3Model
-from rtv3_maniskill.policies.rtv3.model_card import MODEL_CARD_TEMPLATE
+from rtv3_maniskill.policies.rtv3.model_card import MODEL_CARD_TEMPLATE, training_dataset_repo_id
 from rtv3_maniskill.twist_mixture import TwistMixture
 
 
@@ -45,9 +45,12 @@ class RTV3Policy(PreTrainedPolicy):
     name = "rtv3"
 
     def __init__(self, config: RTV3Config, dataset_stats: dict | None = None, dataset_meta=None, **kwargs):
-        """``dataset_stats`` / ``dataset_meta`` are accepted for LeRobot's factory and unused:
-        the model normalises egocentrically and by fixed scales."""
+        """``dataset_stats`` / ``dataset_meta`` are accepted for LeRobot's factory; the stats are unused
+        (the model normalises egocentrically and by fixed scales), the metadata gives the model card
+        the training dataset's repo id."""
         super().__init__(config)
+        self.dataset_repo_id = training_dataset_repo_id(dataset_meta)
+        """The training dataset's repo id, named by the saved model card (``None``: unknown)."""
         if not config.input_features:
             config.input_features = config.default_input_features()
         if not config.output_features:
@@ -218,7 +221,15 @@ class RTV3Policy(PreTrainedPolicy):
 
     # ------------------------------------------------------------------ model card
 
-    def generate_model_card(self, dataset_repo_id: str, model_type: str, license: str | None,
+    @classmethod
+    def from_pretrained(cls, pretrained_name_or_path, **kwargs):
+        """LeRobot's loader; the training dataset's repo id comes from the checkpoint folder."""
+        policy = super().from_pretrained(pretrained_name_or_path, **kwargs)
+        if policy.dataset_repo_id is None:
+            policy.dataset_repo_id = training_dataset_repo_id(pretrained_dir=pretrained_name_or_path)
+        return policy
+
+    def generate_model_card(self, dataset_repo_id: str | None, model_type: str, license: str | None,
                             tags: list[str] | None) -> ModelCard:
         """Model card from the RT-V3 template (offline: no Hub validation call)."""
         card_data = ModelCardData(
@@ -248,7 +259,7 @@ class RTV3Policy(PreTrainedPolicy):
     def _save_pretrained(self, save_directory: Path) -> None:
         """``config.json`` + ``model.safetensors`` (LeRobot) and a ``README.md`` model card."""
         super()._save_pretrained(save_directory)
-        card = self.generate_model_card(self.config.repo_id or "local", self.config.type, self.config.license, self.config.tags)
+        card = self.generate_model_card(self.dataset_repo_id, self.config.type, self.config.license, self.config.tags)
         card.save(str(Path(save_directory) / "README.md"))
 
 

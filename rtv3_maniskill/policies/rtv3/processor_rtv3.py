@@ -3,7 +3,9 @@
 The model normalises by itself (egocentric frame + fixed scales), so the normaliser steps are
 identities under the config's ``normalization_mapping``; they stay in the pipeline so that
 saved processors look like every other LeRobot policy's. The rename and device steps are kept
-under their standard names: ``lerobot-eval`` overrides them by name.
+under their standard names: ``lerobot-eval`` overrides them by name. The features a dataset
+stores flat (``features.STORED_FLAT``) pass through unchanged: the policy's batch reader
+(``batch.py``) reshapes them.
 """
 
 from __future__ import annotations
@@ -26,10 +28,9 @@ from lerobot.processor.converters import (
     transition_to_policy_action,
 )
 from lerobot.processor.core import TransitionKey
-
-from rtv3_maniskill.features import TARGET_GRASP
 from lerobot.utils.constants import POLICY_POSTPROCESSOR_DEFAULT_NAME, POLICY_PREPROCESSOR_DEFAULT_NAME
 
+from rtv3_maniskill import features
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 
 
@@ -81,8 +82,8 @@ def batch_to_rtv3_transition(batch: dict[str, Any]):
     keeps only ``observation.*``, ``action`` and a few bookkeeping keys.
     """
     transition = batch_to_transition(batch)
-    if TARGET_GRASP in batch:
+    if features.TARGET_GRASP in batch:
         extra = dict(transition.get(TransitionKey.COMPLEMENTARY_DATA) or {})
-        extra[TARGET_GRASP] = batch[TARGET_GRASP]
+        extra[features.TARGET_GRASP] = batch[features.TARGET_GRASP]
         transition[TransitionKey.COMPLEMENTARY_DATA] = extra
     return transition
