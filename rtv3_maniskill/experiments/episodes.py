@@ -30,6 +30,7 @@ from rtv3_maniskill.experiments.planning import trial_outcome
 from rtv3_maniskill.shared_control.assistance import METHOD_NAMES, AssistanceMethod
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
 from rtv3_maniskill.shared_control.hindsight_optimization import HindsightOptimization
+from rtv3_maniskill.shared_control.oracle_prior import OraclePrior
 from rtv3_maniskill.shared_control.shared_controller import SharedControlConfig, SharedController
 from rtv3_maniskill.tasks.grasp_clutter import GraspClutterEnv
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
@@ -67,7 +68,9 @@ def check_policy_fits_env(policy: Any, env: Any) -> None:
 
 def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None, ho_variant: str = "rtv3_authors",
                 config: SharedControlConfig | None = None) -> AssistanceMethod:
-    """Assistance method by name: ``"direct"``, ``"ho"`` or ``"rtv3"`` (needs ``policy``), with the
+    """Assistance method by name: ``"direct"``, ``"ho"``, ``"rtv3"`` (needs ``policy``) or an oracle
+    (``"oracle"``, ``"oracle_goal"``: RT-V3's controller around an :class:`OraclePrior` whose goals the
+    caller sets before each episode), with the
     env controller's ``speed_limits`` (m/s, rad/s); ``config`` sets the RT-V3 controller (its speed
     limits are replaced by the env's).
 
@@ -80,6 +83,9 @@ def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None
         return DirectTeleoperation(lin, ang)
     if key == "ho":
         return HindsightOptimization(ho_variant, lin, ang)
+    if key in ("oracle", "oracle_goal"):  # goals set per trial: method.policy.set_goals(...)
+        config = dataclasses.replace(config or SharedControlConfig(), max_linear_speed=lin, max_angular_speed=ang)
+        return SharedController(OraclePrior(max_linear_speed=lin, max_angular_speed=ang), config)
     if key in ("rtv3", "rt_v3"):
         if policy is None:
             raise ValueError("method 'rtv3' needs a policy (load one with rtv3_maniskill.policies.rtv3.load_policy)")
@@ -133,6 +139,8 @@ class SharedControlEnv(gym.Wrapper):
         self._scene_seed: int | None = None
         self._context: tuple[torch.Tensor, torch.Tensor] | None = None
         self._obs: dict | None = None
+        self.gripper = GRIPPER_OPEN
+        """Normalised gripper action sent with every step (1 = open, -1 = closed); stays open unless set."""
 
     @property
     def base(self) -> Any:
@@ -179,7 +187,7 @@ class SharedControlEnv(gym.Wrapper):
             if tuple(user.shape) == (1, 6) and user.is_floating_point() and float(user.abs().sum()) == 0.0:
                 user = None
         robot = self.method.step(observation, user)[0].double()
-        command = torch.cat([robot.float(), torch.tensor([GRIPPER_OPEN])])[None]
+        command = torch.cat([robot.float(), torch.tensor([float(self.gripper)])])[None]
         obs, reward, terminated, truncated, info = self.env.step(command)
         obs = self._with_context(obs)
         self._obs = obs
@@ -191,6 +199,24 @@ class SharedControlEnv(gym.Wrapper):
         info["robot_twist"] = robot
         info["assistance_mode"] = diagnostics.get("mode", "")
         info["assistance"] = diagnostics
+        return obs, reward, terminated, truncated, info
+
+    def step_scripted(self, robot_twist: Any, mode: str = "scripted", user_twist: Any = None):
+        """One step with ``robot_twist`` (6,) (TCP body frame) sent as it is, bypassing the method (a
+        scripted grasp motion, or the user alone while holding an object); gripper :attr:`gripper`.
+        ``info`` as in :meth:`step`, with ``assistance_mode = mode`` and ``assistance = {"mode": mode}``."""
+        if self._obs is None:
+            raise RuntimeError("call reset() before step_scripted()")
+        robot = torch.as_tensor(np.asarray(robot_twist), dtype=torch.float64).reshape(-1)
+        if robot.shape != (6,) or not torch.isfinite(robot).all():
+            raise ValueError(f"robot_twist must be 6 finite numbers, got {robot.tolist()}")
+        command = torch.cat([robot.float(), torch.tensor([float(self.gripper)])])[None]
+        obs, reward, terminated, truncated, info = self.env.step(command)
+        obs = self._with_context(obs)
+        self._obs = obs
+        user = torch.zeros(6, dtype=torch.float64) if user_twist is None else torch.as_tensor(
+            np.asarray(user_twist), dtype=torch.float64).reshape(6)
+        info.update(user_twist=user, robot_twist=robot, assistance_mode=mode, assistance={"mode": mode})
         return obs, reward, terminated, truncated, info
 
 

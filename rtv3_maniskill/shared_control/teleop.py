@@ -22,7 +22,8 @@ A / B / Y / X      events grasp / release / approach / lift
 =================  ==========================  ==================
 
 Keyboard layout: ``w/s`` +-v_x, ``a/d`` +-v_y, ``q/e`` +-v_z, ``i/k`` +-w_x, ``j/l`` +-w_y,
-``u/o`` +-w_z (opposite keys cancel).
+``u/o`` +-w_z (opposite keys cancel); the buttons (:data:`KEYBOARD_BUTTONS`): ``g`` grasp (A),
+``r`` release (B), ``f`` approach (Y), ``t`` lift (X).
 
 The twist axes are those of the frame the operator commands in. The controllers take an
 EE body twist; for commands meant in world-aligned axes use :func:`command_frame_to_body`.
@@ -128,6 +129,8 @@ KEYBOARD_LAYOUT: dict[str, tuple[int, float]] = {
     "i": (3, 1.0), "k": (3, -1.0), "j": (4, 1.0), "l": (4, -1.0), "u": (5, 1.0), "o": (5, -1.0),
 }  # fmt: skip
 """Key -> (twist index, sign)."""
+KEYBOARD_BUTTONS: dict[str, str] = {"g": "grasp", "r": "release", "f": "approach", "t": "lift"}
+"""Key -> button event (the gamepad's A, B, Y, X; see :meth:`GamepadMapping.events`)."""
 
 
 @dataclass

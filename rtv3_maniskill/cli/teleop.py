@@ -1,0 +1,61 @@
+"""``rtv3 teleop``: grasp objects in clutter by keyboard, gamepad or a simulated user, with shared control.
+
+Keyboard (the pygame window must have the focus): ``w/s a/d q/e`` move the hand along world x, y, z;
+``i/k j/l u/o`` rotate it; ``f`` approach (the paper's Y), ``g`` grasp (A), ``t`` lift (X),
+``r`` release (B); F12 saves a screenshot; Esc quits. Gamepad: see ``shared_control/teleop.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--method", default="rtv3", choices=["rtv3", "direct", "ho"], help="assistance method")
+    parser.add_argument("--input", default="keyboard",
+                        help="keyboard, gamepad or simulated:NAME (NAME: ideal, noisy, laggy, mode_switching, ...)")
+    parser.add_argument("--scene-seed", type=int, default=0, help="scene of the first trial (trial i: seed + i)")
+    parser.add_argument("--trials", type=int, default=1, help="trials in this session")
+    parser.add_argument("--participant", default="P0", help="participant id written with every trial")
+    parser.add_argument("--record", type=Path, default=None,
+                        help="record the session as a LeRobot dataset into this new folder (+ sessions.csv)")
+    parser.add_argument("--timeout", type=float, default=90.0, help="seconds of simulated time per trial")
+    parser.add_argument("--headless", action="store_true", help="no window (simulated input only)")
+    parser.add_argument("--realtime", choices=["auto", "on", "off"], default="auto",
+                        help="pace at 20 Hz (auto: on for a person, off for a simulated user)")
+    parser.add_argument("--scene-type", default="pile", choices=["pile", "packed", "mixed"])
+    parser.add_argument("--target-grasp", type=int, default=None, help="target grasp index (default: drawn)")
+    parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
+                        help="RT-V3 checkpoint folder (default: the bundled one)")
+    parser.add_argument("--user-seed", type=int, default=0, help="seed of a simulated user's randomness")
+    parser.add_argument("--screenshot", type=Path, default=None, help="PNG written by F12 (or at --screenshot-step)")
+    parser.add_argument("--screenshot-step", type=int, default=None, help="save --screenshot after this many steps")
+
+
+def run(args: argparse.Namespace) -> int:
+    from rtv3_maniskill.experiments.grasp_trial import TrialConfig
+    from rtv3_maniskill.experiments.teleop_session import SessionConfig, TeleopSession
+
+    if args.trials < 1:
+        raise SystemExit(f"error: --trials must be >= 1, got {args.trials}")
+    if args.headless and not args.input.startswith("simulated:"):
+        raise SystemExit(f"error: --headless needs a simulated input (--input simulated:NAME), got {args.input!r}")
+    if args.record is not None and args.record.exists():
+        raise SystemExit(f"error: {args.record} already exists; record each session into a new folder")
+    config = SessionConfig(
+        method=args.method, input=args.input, scene_seed=args.scene_seed, trials=args.trials,
+        participant=args.participant, record=args.record, headless=args.headless,
+        realtime=None if args.realtime == "auto" else args.realtime == "on", policy_path=args.policy_path,
+        scene_type=args.scene_type, target_grasp=args.target_grasp, user_seed=args.user_seed,
+        screenshot=args.screenshot, screenshot_step=args.screenshot_step,
+        trial_config=TrialConfig(timeout_s=args.timeout),
+    )
+    results = TeleopSession(config).run()
+    counts: dict[str, int] = {}
+    for r in results:
+        counts[r.outcome] = counts.get(r.outcome, 0) + 1
+    print("outcomes: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
+    if args.record is not None:
+        print(f"recorded {len(results)} trial(s) into {args.record} (LeRobot dataset + sessions.csv)")
+    return 0

@@ -1,0 +1,248 @@
+"""An interactive shared-control session: a person (or a simulated user) grasps objects in clutter.
+
+Per trial: ``GraspClutter-v1`` loads scene ``scene_seed + trial`` and its target grasp; at 20 Hz the
+input source gives a command, the grasp buttons (:mod:`grasp_actions`) may run a scripted motion,
+otherwise the assistance method (``make_method``: direct, HO or RT-V3) turns the command into the
+robot's twist; while the gripper is closed the user drives alone. :mod:`grasp_trial` decides the
+outcome (success, timeout, collision, unmatched); the trial is recorded as one LeRobot episode.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from rtv3_maniskill import features
+from rtv3_maniskill.datasets.demonstrations import describe_grasp
+from rtv3_maniskill.experiments.grasp_actions import EVENTS, GRIPPER_CLOSED, GraspActionConfig, GraspActions
+from rtv3_maniskill.experiments.grasp_trial import GraspTrialMonitor, TrialConfig
+from rtv3_maniskill.experiments.teleop_inputs import SimulatedOperator
+
+
+@dataclass
+class SessionConfig:
+    """What ``rtv3 teleop`` runs (see ``rtv3 teleop --help``)."""
+
+    method: str = "rtv3"
+    input: str = "keyboard"
+    scene_seed: int = 0
+    trials: int = 1
+    participant: str = "P0"
+    record: Path | None = None
+    headless: bool = False
+    realtime: bool | None = None
+    """Pace steps at 20 Hz (default: for a person, not for a simulated user)."""
+    policy_path: Path | None = None
+    scene_type: str = "pile"
+    target_grasp: int | None = None
+    init_qpos: np.ndarray | None = None
+    """Start joint positions (7,) instead of the rest pose (e.g. IK of the pre-grasp)."""
+    user_seed: int = 0
+    screenshot: Path | None = None
+    screenshot_step: int | None = None
+    trial_config: TrialConfig = field(default_factory=TrialConfig)
+    grasp_config: GraspActionConfig = field(default_factory=GraspActionConfig)
+
+
+@dataclass
+class TrialResult:
+    """One finished trial."""
+
+    trial: int
+    scene_seed: int
+    outcome: str
+    steps: int
+    contacts: int
+    task: str
+    episode_index: int | None = None
+
+
+def _state(obs: dict) -> np.ndarray:
+    return features.observation_from_env(obs)[features.STATE][0].cpu().numpy()
+
+
+def _frame(env: Any) -> np.ndarray:
+    image = env.render()
+    image = image.cpu().numpy() if isinstance(image, torch.Tensor) else np.asarray(image)
+    return image[0] if image.ndim == 4 else image
+
+
+def _class_weights(diagnostics: dict) -> np.ndarray | None:
+    weights = diagnostics.get("class_weights", diagnostics.get("belief"))
+    return None if weights is None else np.asarray(weights, dtype=np.float32)
+
+
+class TeleopSession:
+    """Builds the env, method, input, window and recorder of a :class:`SessionConfig`; :meth:`run` plays it."""
+
+    def __init__(self, config: SessionConfig) -> None:
+        from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_speed_limits, make_method
+        from rtv3_maniskill.experiments.teleop_inputs import make_input
+
+        self.config = config
+        policy = None
+        num_points, max_grasps = features.DEFAULT_NUM_POINTS, features.DEFAULT_MAX_GRASPS
+        if config.method.strip().lower().replace("-", "_") in ("rtv3", "rt_v3"):
+            from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
+
+            policy = load_policy(config.policy_path)
+            num_points, max_grasps = int(policy.config.num_points), int(policy.config.max_grasps)
+        self.display = None
+        if not config.headless:
+            from rtv3_maniskill.experiments.teleop_display import TeleopDisplay
+
+            self.display = TeleopDisplay()
+        self.input = make_input(config.input, config.user_seed)
+        self.simulated = isinstance(self.input, SimulatedOperator)
+        render = dict(render_mode="rgb_array") if self.display is not None else {}
+        self.env = SharedControlEnv(num_points=num_points, max_grasps=max_grasps, scene_type=config.scene_type,
+                                    rendered_context=True, **render)
+        self.env.method = make_method(config.method, controller_speed_limits(self.env.base), policy=policy)
+        self.speed_limits = controller_speed_limits(self.env.base)
+        self.actions = GraspActions(config.grasp_config)
+        self.monitor = GraspTrialMonitor(self.env.base, config.trial_config)
+        self.recorder = None
+        if config.record is not None:
+            from rtv3_maniskill.datasets.session_recorder import SessionRecorder
+
+            self.recorder = SessionRecorder(config.record, num_points, max_grasps, settings=dict(
+                method=config.method, input=config.input, participant=config.participant, scene_seed=config.scene_seed,
+                trials=config.trials, timeout_s=config.trial_config.timeout_s, scene_type=config.scene_type))
+        self.quit = False
+        self._shots = 0
+
+    def run(self) -> list[TrialResult]:
+        """Play ``config.trials`` trials (Esc or closing the window aborts); returns their results."""
+        results = []
+        try:
+            for trial in range(self.config.trials):
+                results.append(self.run_trial(trial))
+                if self.quit:
+                    break
+        finally:
+            self.close()
+        return results
+
+    def close(self) -> None:
+        """Finalize the recording and close the window and env."""
+        if self.recorder is not None:
+            self.recorder.close()
+        if self.display is not None:
+            self.display.close()
+        self.env.close()
+
+    def _reset(self, scene_seed: int) -> dict:
+        options: dict[str, Any] = {}
+        if self.config.target_grasp is not None:
+            options["target_grasp_index"] = self.config.target_grasp
+        obs, _ = self.env.reset(seed=scene_seed, options=options)
+        if self.config.init_qpos is not None:
+            options.update(init_qpos=np.asarray(self.config.init_qpos),
+                           target_grasp_index=int(self.env.base.target_grasp_index[0]))
+            obs, _ = self.env.reset(seed=scene_seed, options=options)
+        return obs
+
+    def run_trial(self, trial: int) -> TrialResult:
+        """One trial on scene ``scene_seed + trial``."""
+        cfg, env = self.config, self.env
+        scene_seed = cfg.scene_seed + trial
+        obs = self._reset(scene_seed)
+        base = env.base
+        target_index = int(base.target_grasp_index[0])
+        self.actions.reset()
+        env.gripper = self.actions.gripper
+        self.monitor.reset()
+        if self.simulated:
+            self.input.reset(env, self.actions)
+        else:
+            self.input.reset(env)
+        names = [o.name for o in base.layouts[0].objects]
+        task = describe_grasp(names[self.monitor.target_object], base.target_grasp_pose[0].double().cpu().numpy())
+        extra = obs["extra"]
+        if self.recorder is not None:
+            keys = ("point_cloud", "point_cloud_mask", "grasps", "grasps_mask")
+            context = {k: extra[k][0].cpu().numpy() for k in keys}
+            self.recorder.start_trial(context, task, participant=cfg.participant, method=cfg.method,
+                                      input=cfg.input, scene_seed=scene_seed, target_grasp_index=target_index,
+                                      target_object=self.monitor.target_object)
+        realtime = (not self.simulated) if cfg.realtime is None else cfg.realtime
+        panel = dict(method=cfg.method, input=cfg.input, trial=f"{trial + 1}/{cfg.trials}", task=task,
+                     timeout=cfg.trial_config.timeout_s, mode="none", phase="free", gripper="open")
+        if self.display is not None:
+            self.display.draw(_frame(env), dict(panel, time=0.0, contacts=0))
+        outcome, info, step = None, {}, 0
+        next_tick = time.perf_counter()
+        while outcome is None:
+            events = self.display.events() if self.display is not None else []
+            if self._handle_window_events(events):
+                outcome = "aborted"
+                break
+            tcp = base.tcp_pose_matrix[0].detach().cpu().double()
+            user = self.input.poll(tcp, events)
+            for button in user.buttons:
+                self.actions.press(button)
+            pressed = np.array([int(e in user.buttons) for e in EVENTS], dtype=np.int64)
+            scripted = self.actions.step(tcp)
+            env.gripper = self.actions.gripper
+            state = _state(obs)
+            if scripted is not None:
+                obs, _, _, _, info = env.step_scripted(scripted, "scripted", user_twist=user.body)
+            elif self.actions.gripper == GRIPPER_CLOSED:  # holding: the user alone drives
+                obs, _, _, _, info = env.step_scripted(self._clamp(user.body), "user_only", user_twist=user.body)
+            else:
+                obs, _, _, _, info = env.step(user.body.numpy())
+            step += 1
+            diagnostics = info["assistance"]
+            closed = self.actions.gripper == GRIPPER_CLOSED
+            outcome = self.monitor.update(info, closed)
+            if self.recorder is not None:
+                self.recorder.add_step(state, user.raw.numpy(), info["robot_twist"].numpy(), info["assistance_mode"],
+                                       _class_weights(diagnostics), pressed, self.actions.gripper,
+                                       bool(info["success"][0]))
+            if self.display is not None:
+                panel.update(mode=info["assistance_mode"] or "none", phase=self.actions.phase,
+                             gripper="closed" if closed else "open")
+                self.display.draw(_frame(env), dict(panel, time=step * features.DT, contacts=self.monitor.contacts,
+                                                    diagnostics=diagnostics, outcome=outcome))
+                if cfg.screenshot is not None and cfg.screenshot_step == step:
+                    self.display.screenshot(cfg.screenshot)
+            if realtime:
+                next_tick += features.DT
+                time.sleep(max(0.0, next_tick - time.perf_counter()))
+        episode = None
+        if self.recorder is not None and step > 0:
+            episode = self.recorder.end_trial(outcome, _state(obs), step * features.DT, self.monitor.contacts)
+        print(f"trial {trial + 1}: scene {scene_seed}, {task}: {outcome} after {step * features.DT:.1f} s "
+              f"({self.monitor.contacts} contact steps)", flush=True)
+        return TrialResult(trial, scene_seed, outcome, step, self.monitor.contacts, task, episode)
+
+    def _clamp(self, twist: torch.Tensor) -> torch.Tensor:
+        lin, ang = self.speed_limits
+        v, w = twist[:3], twist[3:]
+        v = v * min(1.0, lin / max(float(v.norm()), 1e-12))
+        w = w * min(1.0, ang / max(float(w.norm()), 1e-12))
+        return torch.cat([v, w])
+
+    def _handle_window_events(self, events: list) -> bool:
+        """Esc / window close -> quit (True); F12 -> screenshot."""
+        if self.display is None:
+            return False
+        pg = self.display.pygame
+        for event in events:
+            if event.type == pg.QUIT or (event.type == pg.KEYDOWN and event.key == pg.K_ESCAPE):
+                self.quit = True
+                return True
+            if event.type == pg.KEYDOWN and event.key == pg.K_F12:
+                folder = self.config.record if self.config.record is not None else Path(".")
+                path = self.config.screenshot or folder / f"screenshot_{self._shots}.png"
+                self._shots += 1
+                print(f"screenshot: {self.display.screenshot(path)}", flush=True)
+        return False
+
+
+__all__ = ["SessionConfig", "TeleopSession", "TrialResult"]
