@@ -11,11 +11,12 @@ CPU and GPU (pytorch_kinematics Jacobians).
 
 from __future__ import annotations
 
+import os
 from contextlib import redirect_stderr, redirect_stdout
 from copy import deepcopy
 from dataclasses import dataclass
 from functools import lru_cache
-import os
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytorch_kinematics as pk
@@ -25,6 +26,8 @@ from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController, PDJ
 from mani_skill.agents.registration import register_agent
 from mani_skill.agents.robots.panda.panda import Panda
 
+if TYPE_CHECKING:  # control.neo_qp imports tasks.scene_geometry, whose package imports this module
+    from rtv3_maniskill.control.neo_qp import NeoController, NeoSafetyFilter
 
 
 @lru_cache(maxsize=4)
@@ -47,7 +50,7 @@ def clamp_twist_norms(twist: torch.Tensor, max_linear: float, max_angular: float
 class PDEETwistController(PDJointPosController):
     """Arm controller whose action is the TCP body twist ``(B, 6)`` ``[v, w]``."""
 
-    config: "PDEETwistControllerConfig"
+    config: PDEETwistControllerConfig
 
     def _initialize_joints(self):
         super()._initialize_joints()
@@ -105,9 +108,71 @@ class PDEETwistControllerConfig(PDJointPosControllerConfig):
     controller_cls = PDEETwistController
 
 
+class PDEETwistQPController(PDEETwistController):
+    """``pd_ee_twist_qp``: the TCP body twist ``(B, 6)`` tracked by the NEO QP (``control/neo_qp.py``).
+
+    Joint position and velocity limits hold (velocity dampers near the limits); obstacles are not
+    avoided unless a ``NeoSafetyFilter`` is attached per sub-scene (``attach_safety_filters``), whose
+    collision damper then decides the joint velocities. Position and velocity drive targets as in
+    ``pd_ee_twist``.
+    """
+
+    config: PDEETwistQPControllerConfig
+
+    def _initialize_joints(self):
+        super()._initialize_joints()
+        from rtv3_maniskill.control.neo_qp import NeoConfig, NeoController
+
+        neo = NeoConfig(dt=1.0 / self._control_freq, collision_damper=False)
+        controller = NeoController(None, neo)
+        self.qp_controllers: list[NeoController] = [controller] + [
+            NeoController(None, neo, kinematics=controller.kin) for _ in range(self.articulation.pose.p.shape[0] - 1)
+        ]
+        self.safety_filters: list[NeoSafetyFilter | None] = [None] * len(self.qp_controllers)
+
+    def attach_safety_filters(self, filters: list[NeoSafetyFilter | None]) -> None:
+        """One filter (or None: limits only) per sub-scene; the filters' ``reset`` sets their scenes."""
+        if len(filters) != len(self.qp_controllers):
+            raise ValueError(f"need one safety filter per sub-scene ({len(self.qp_controllers)}), got {len(filters)}")
+        self.safety_filters = list(filters)
+
+    def joint_velocities(self, q: torch.Tensor, body_twist: torch.Tensor) -> torch.Tensor:
+        """``q (B, 7)``, TCP body twist ``(B, 6)`` -> joint velocities ``(B, 7)`` (one QP per sub-scene)."""
+        if q.shape[0] != len(self.qp_controllers):
+            raise ValueError(f"expected {len(self.qp_controllers)} configurations, got q of shape {tuple(q.shape)}")
+        q_np = q.detach().cpu().double().numpy()
+        twist_np = body_twist.detach().cpu().double().numpy()
+        out = []
+        for i, (ctrl, filt) in enumerate(zip(self.qp_controllers, self.safety_filters)):
+            step = filt.filter(q_np[i], twist_np[i]) if filt is not None else ctrl.step(q_np[i], twist_np[i])
+            out.append(step.joint_velocities)
+        return torch.as_tensor(np.stack(out), dtype=q.dtype, device=q.device)
+
+
+@dataclass
+class PDEETwistQPControllerConfig(PDEETwistControllerConfig):
+    controller_cls = PDEETwistQPController
+
+
+def attach_safety_filters(env, filters: list[NeoSafetyFilter | None]) -> None:
+    """Put one ``NeoSafetyFilter`` per sub-scene into a ``pd_ee_twist_qp`` env (unwrapped or wrapped)."""
+    arm = env.unwrapped.agent.controller.controllers.get("arm")
+    if not isinstance(arm, PDEETwistQPController):
+        mode = env.unwrapped.control_mode
+        raise ValueError(f"safety filters need control_mode='pd_ee_twist_qp', the env uses {mode!r}")
+    arm.attach_safety_filters(filters)
+
+
+def target_object_index(env, index: int = 0) -> int:
+    """Index (into ``env.layouts[index].objects``) of the object that sub-scene ``index``'s target grasp holds."""
+    base = env.unwrapped
+    grasp = int(base.target_grasp_index[index])
+    return int(base.grasp_sets[index].object_ids[grasp])
+
+
 @register_agent()
 class PandaTwist(Panda):
-    """ManiSkill's Panda plus the ``pd_ee_twist`` control mode (all Panda modes still work)."""
+    """ManiSkill's Panda plus the ``pd_ee_twist`` and ``pd_ee_twist_qp`` control modes (all Panda modes still work)."""
 
     uid = "panda_twist"
 
@@ -125,7 +190,18 @@ class PandaTwist(Panda):
             urdf_path=self.urdf_path,
         )
         configs["pd_ee_twist"] = dict(arm=arm, gripper=deepcopy(configs["pd_joint_pos"]["gripper"]))
+        arm_qp = PDEETwistQPControllerConfig(**{k: getattr(arm, k) for k in arm.__dataclass_fields__})
+        configs["pd_ee_twist_qp"] = dict(arm=arm_qp, gripper=deepcopy(configs["pd_joint_pos"]["gripper"]))
         return configs
 
 
-__all__ = ["PDEETwistController", "PDEETwistControllerConfig", "PandaTwist", "clamp_twist_norms"]
+__all__ = [
+    "PDEETwistController",
+    "PDEETwistControllerConfig",
+    "PDEETwistQPController",
+    "PDEETwistQPControllerConfig",
+    "PandaTwist",
+    "attach_safety_filters",
+    "clamp_twist_norms",
+    "target_object_index",
+]

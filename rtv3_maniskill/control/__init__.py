@@ -1,0 +1,1 @@
+"""Reactive control: the NEO-style QP twist controller and its collision safety filter (NeoSS)."""
