@@ -411,3 +411,81 @@ class PandaCollisionWorld:
                 best = min(best, res.min_distance)
         return float(best)
 
+
+    # ------------------------------------------------------------------ distance queries (reactive control)
+
+    def robot_geometry_names(self) -> list[str]:
+        """Names of the robot's collision geometries, indexed like ``robot_geometry_ids``."""
+        return [self.geometry.geometryObjects[i].name for i in self.robot_geometry_ids]
+
+    def obstacle_pairs(self) -> list[tuple[int, int, int]]:
+        """``(pair index, robot geometry id, object index)`` of every robot-obstacle pair.
+
+        Object index ``TABLE_OBJECT_INDEX`` (-1) is the table top.
+        """
+        out = []
+        for obj_idx, pair_ids in self.pairs_by_object.items():
+            for p in pair_ids:
+                out.append((p, self.geometry.collisionPairs[p].first, obj_idx))
+        return out
+
+    def nearest_points(self, q, pair_ids: np.ndarray, max_distance: float) -> NearestPoints:
+        """Signed distances and nearest points (world frame) of robot-obstacle pairs at ``q (7,)``.
+
+        ``pair_ids (P,)``: indices into the collision pairs (see ``obstacle_pairs``). Pairs whose
+        bounding spheres are farther apart than ``max_distance`` (m) are culled before the exact
+        (coal GJK/EPA) query; of the others, those with distance ``<= max_distance`` are returned.
+        Also runs the forward kinematics of ``q`` into ``self.data`` (joint placements).
+        """
+        q = as_joint_vector(q)
+        pair_ids = np.asarray(pair_ids, dtype=np.int64).reshape(-1)
+        pin.forwardKinematics(self.model, self.data, q)
+        pin.updateGeometryPlacements(self.model, self.data, self.geometry, self.geometry_data)
+        if not hasattr(self, "_bounding_spheres") or len(self._bounding_spheres[1]) != self.geometry.ngeoms:
+            objs = self.geometry.geometryObjects
+            centers = np.array([np.asarray(g.geometry.aabb_center, dtype=np.float64) for g in objs])
+            radii = np.array([float(g.geometry.aabb_radius) for g in objs])
+            firsts = np.array([cp.first for cp in self.geometry.collisionPairs], dtype=np.int64)
+            seconds = np.array([cp.second for cp in self.geometry.collisionPairs], dtype=np.int64)
+            self._bounding_spheres = (centers, radii, firsts, seconds)
+        centers, radii, firsts, seconds = self._bounding_spheres
+        world_centers = np.array([self.geometry_data.oMg[i].act(centers[i]) for i in range(len(radii))])
+        a, b = firsts[pair_ids], seconds[pair_ids]
+        gap = np.linalg.norm(world_centers[a] - world_centers[b], axis=1) - radii[a] - radii[b]
+        keep = pair_ids[gap <= max_distance]
+        rows = []
+        for p in keep:
+            res = pin.computeDistance(self.geometry, self.geometry_data, int(p))
+            if res.min_distance <= max_distance:
+                rows.append((int(p), res.min_distance, res.getNearestPoint1(), res.getNearestPoint2(), res.normal))
+        if not rows:
+            empty, none = np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+            return NearestPoints(none, np.zeros(0), empty, empty.copy(), empty.copy(), none.copy())
+        pairs = np.array([r[0] for r in rows], dtype=np.int64)
+        first = firsts[pairs]
+        return NearestPoints(
+            pair_ids=pairs,
+            distances=np.array([r[1] for r in rows]),
+            robot_points=np.array([r[2] for r in rows]),
+            obstacle_points=np.array([r[3] for r in rows]),
+            normals=np.array([r[4] for r in rows]),
+            robot_joints=np.array([self.geometry.geometryObjects[int(g)].parentJoint for g in first], dtype=np.int64),
+        )
+
+
+@dataclass(frozen=True)
+class NearestPoints:
+    """Result of ``PandaCollisionWorld.nearest_points`` for ``K`` robot-obstacle pairs (world frame).
+
+    ``distances (K,)`` signed (m, negative when penetrating); ``robot_points``/``obstacle_points``
+    ``(K, 3)`` the witness points; ``normals (K, 3)`` unit vectors from the robot towards the
+    obstacle (the distance shrinks when the robot point moves along them); ``robot_joints (K,)``
+    the Pinocchio joint that carries each robot geometry.
+    """
+
+    pair_ids: np.ndarray
+    distances: np.ndarray
+    robot_points: np.ndarray
+    obstacle_points: np.ndarray
+    normals: np.ndarray
+    robot_joints: np.ndarray
