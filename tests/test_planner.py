@@ -16,7 +16,13 @@ from rtv3_maniskill.datasets.panda_model import (
     panda_asset_dir,
 )
 from rtv3_maniskill.datasets.planner import FAILURE_REASONS, PandaPlanner
-from rtv3_maniskill.tasks.scene_geometry import ROBOT_BASE_POSITION, CollisionShape, ObjectGeometry, SceneGeometry
+from rtv3_maniskill.tasks.scene_geometry import (
+    READY_QPOS,
+    ROBOT_BASE_POSITION,
+    CollisionShape,
+    ObjectGeometry,
+    SceneGeometry,
+)
 
 TOP_DOWN = np.diag([1.0, -1.0, -1.0])
 """TCP rotation pointing the approach (z) axis straight down."""
@@ -95,10 +101,11 @@ def test_fk_matches_sapien_and_tcp_axes(kinematics):
         left = links["panda_leftfinger"].entity_pose.p
         right = links["panda_rightfinger"].entity_pose.p
         assert np.allclose(left - right, 0.08 * ours[:3, 1], atol=1e-5)
-    # ManiSkill's rest keyframe puts the TCP 17 cm above the table, pointing down.
-    rest = kinematics.forward_kinematics(REST_QPOS)
-    assert np.allclose(rest[:3, 3], [0.0, 0.0, 0.1698], atol=1e-3)
-    assert np.allclose(rest[:3, 2], [0.0, 0.0, -1.0], atol=1e-6)
+    # The authors' placement: the ready pose holds the TCP 0.34 m above the table at the
+    # workspace's near edge (x = -0.20 in the world), pointing down.
+    ready = kinematics.forward_kinematics(READY_QPOS)
+    assert np.allclose(ready[:3, 3], [-0.193, 0.0, 0.337], atol=2e-3)
+    assert np.allclose(ready[:3, 2], [0.0, 0.0, -1.0], atol=1e-6)
 
 
 def test_ik_round_trip(kinematics):

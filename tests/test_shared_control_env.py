@@ -199,13 +199,34 @@ def test_a_contact_fails_the_trial_even_where_the_pregrasp_was_reached(success, 
 
 
 def test_summary_outcomes_add_up_to_the_trials():
-    rows = [dict(user="noisy", method="direct", outcome=o, success=r, collision=c, steps=n)
-            for o, r, c, n in [("success", 1, 0, 40), ("success", 1, 0, 60), ("collision", 1, 1, 30),
-                               ("collision", 0, 1, 12), ("timeout", 0, 0, 150)]]
+    rows = [dict(scene_seed=900000, grasp_index=i, user="noisy", method="direct", outcome=o, success=r, collision=c,
+                 steps=n)
+            for i, (o, r, c, n) in enumerate([("success", 1, 0, 40), ("success", 1, 0, 60), ("collision", 1, 1, 30),
+                                              ("collision", 0, 1, 12), ("timeout", 0, 0, 150)])]
     (s,) = summarize(rows)
     assert (s["trials"], s["SR"], s["CR"], s["TOR"], s["reached"]) == (5, 40.0, 40.0, 20.0, 60.0)
     assert s["mean_iterations"] == 50.0  # successful trials only
     assert "| noisy | Direct | 5 | 40.0 | 40.0 | 20.0 | 60.0 | 50.0 |" in summary_markdown([s])
+
+
+def test_methods_are_paired_with_direct_and_tested_by_exact_mcnemar():
+    # 10 goals: the oracle wins 8 (Direct failed, it succeeded) and loses 2; both succeed on none
+    # else. Exact two-sided McNemar: 2 * P(X <= 2 | n = 10, 1/2) = 2 * (1 + 10 + 45) / 1024.
+    rows = []
+    for g in range(10):
+        oracle_wins = g < 8
+        rows.append(dict(scene_seed=1, grasp_index=g, user="noisy", method="direct",
+                         outcome="timeout" if oracle_wins else "success", success=int(not oracle_wins), collision=0,
+                         steps=150 if oracle_wins else 50))
+        rows.append(dict(scene_seed=1, grasp_index=g, user="noisy", method="oracle",
+                         outcome="success" if oracle_wins else "collision", success=int(oracle_wins),
+                         collision=int(not oracle_wins), steps=60))
+    direct, oracle = summarize(rows)
+    assert direct["wins"] is None
+    assert (oracle["paired_trials"], oracle["wins"], oracle["losses"]) == (10, 8, 2)
+    assert oracle["mcnemar_p"] == pytest.approx(2 * (1 + 10 + 45) / 1024)
+    assert "| noisy | Oracle | 10 | 80.0 |" in summary_markdown([direct, oracle])
+    assert "8 / 2 | 0.109 |" in summary_markdown([direct, oracle])
 
 
 def _rows(path):
@@ -215,7 +236,7 @@ def _rows(path):
 
 def test_benchmark_writes_results_and_resumes_without_duplicates(tmp_path):
     config = BenchmarkConfig(output=tmp_path, scenes=1, users=["noisy"], methods=["direct", "ho"], seed=3,
-                             max_grasps_per_scene=1, max_steps=40)
+                             goals_per_scene=1, max_steps=40)
     summary = run_benchmark(config, progress=False)
     rows = _rows(tmp_path / "results.csv")
     assert [r["method"] for r in rows] == ["direct", "ho"]
@@ -238,7 +259,7 @@ def test_benchmark_writes_results_and_resumes_without_duplicates(tmp_path):
     assert len(_rows(tmp_path / "results.csv")) == 2
 
     changed = BenchmarkConfig(output=tmp_path, scenes=1, users=["noisy"], methods=["direct"], seed=3,
-                              max_grasps_per_scene=1, max_steps=60)
+                              goals_per_scene=1, max_steps=60)
     with pytest.raises(BenchmarkError, match="other settings"):
         run_benchmark(changed, progress=False)
 

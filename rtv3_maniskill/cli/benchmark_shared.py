@@ -25,11 +25,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--users", type=_names, default="noisy,laggy,mode_switching,single_dof,low_dof",
                         help="comma-separated simulated users (ideal, noisy, laggy, mode_switching, single_dof, low_dof)")
     parser.add_argument("--methods", type=_names, default="direct,ho,rtv3",
-                        help="comma-separated assistance methods (direct, ho, rtv3)")
+                        help="comma-separated assistance methods (direct, ho, rtv3, oracle, oracle-goal; the oracles "
+                             "run RT-V3's fusion with a prior that knows every feasible goal / the true goal)")
     parser.add_argument("--seed", type=int, default=9,
                         help="scene seed block (default 9: held out from training scenes of `rtv3 generate --seed 0..8`)")
-    parser.add_argument("--max-grasps-per-scene", type=int, default=None,
-                        help="cap on goal grasps per scene (seeded random subset; default: every valid grasp)")
+    parser.add_argument("--goals-per-scene", "--max-grasps-per-scene", dest="goals_per_scene", type=int, default=None,
+                        help="feasible goals per scene (seeded random subset; default: every feasible grasp; the "
+                             "paper ran 10-20)")
     parser.add_argument("--max-steps", type=int, default=150, help="control steps per trial (20 Hz)")
     parser.add_argument("--continue-after-contact", action="store_true",
                         help="let a trial go on after a robot contact (still counted as a collision) instead of "
@@ -80,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         config = BenchmarkConfig(
             output=args.output, policy_path=args.policy_path, scenes=args.scenes, users=users, methods=methods,
-            seed=args.seed, max_grasps_per_scene=args.max_grasps_per_scene, max_steps=args.max_steps,
+            seed=args.seed, goals_per_scene=args.goals_per_scene, max_steps=args.max_steps,
             stop_on_contact=not args.continue_after_contact,
             obs_mode=args.obs_mode, rendered_context=not args.mesh_context, scene_type=args.scene_type,
             ho_variant=args.ho_variant, shared_control={
@@ -91,6 +93,6 @@ def run(args: argparse.Namespace) -> int:
         summary = run_benchmark(config, progress=not args.no_progress)
     except (BenchmarkError, FileNotFoundError) as err:
         raise SystemExit(f"error: {err}") from None
-    print(summary_markdown(summary))
-    print(f"results: {args.output}/results.csv, summary.csv, summary.md, success_rates.png")
+    print((args.output / "summary.md").read_text())
+    print(f"results: {args.output}/results.csv, goals.csv, summary.csv, summary.md, success_rates.png")
     return 0

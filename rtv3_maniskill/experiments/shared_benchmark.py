@@ -1,8 +1,11 @@
 """Simulated shared-control benchmark (paper Sec. "Simulated Shared Control Experiments", Table II).
 
-Every valid grasp candidate of every scene is a goal (optionally a seeded random subset of
-``max_grasps_per_scene`` per scene); each simulated user drives towards the goal's pre-grasp
-with each assistance method for up to 150 steps (7.5 s). As in the paper's planning and
+The authors' protocol (docs/PAPER_NOTES.md, "Authors' benchmark protocol"): the goals are the
+*feasible* grasp candidates of each scene (:mod:`rtv3_maniskill.experiments.goals`: collision-free
+IK at the pre-grasp and a free straight 5 cm approach; the others are counted by reason in
+``goals.csv`` and never run), optionally a seeded random subset of ``goals_per_scene`` per scene;
+every trial starts from the Panda ready pose, and each simulated user drives towards the goal's
+pre-grasp with each assistance method for up to 150 steps (7.5 s). As in the paper's planning and
 shared-control tables (their SR + CR + TOR add up to 100 %), each trial has one outcome: it
 ends as a *collision* at the first robot contact, as a *success* when the env's
 ``info["success"]`` comes first (pose distance to the pre-grasp < 0.1, shared-control
@@ -12,9 +15,15 @@ pre-grasp reached whether or not the robot touched something, which differs from
 ``stop_on_contact=False`` lets trials go on after a contact, or when the contact and the arrival
 fall on the same step).
 
+Besides Direct, HO and RT-V3, the methods ``oracle`` and ``oracle_goal`` run the same fusion and
+gate as RT-V3 with a prior that knows the scene (:class:`~rtv3_maniskill.shared_control.oracle_prior.
+OraclePrior`: one class per feasible goal, or the true goal alone): the ceiling of what a learned
+prior can reach under the current fusion. ``summary.md`` pairs every method with Direct on the
+same goals and user noise (wins, losses, exact McNemar p) and puts the paper's Table II beside.
+
 Outputs in ``output``: ``results.csv`` (one row per trial, appended and flushed as trials
-finish; a rerun skips the finished (scene, grasp, user, method) rows), ``summary.csv``,
-``summary.md`` and ``success_rates.png``; ``config.json`` guards a resumed run against
+finish; a rerun skips the finished (scene, grasp, user, method) rows), ``goals.csv``,
+``summary.csv``, ``summary.md`` and ``success_rates.png``; ``config.json`` guards a resumed run against
 different settings. :func:`merge_runs` combines runs of disjoint users or methods made in
 parallel processes.
 
@@ -38,16 +47,28 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from rtv3_maniskill import se3
+from rtv3_maniskill.features import PREGRASP_DISTANCE
 from rtv3_maniskill.records import RecordStore, SettingsMismatch, scene_seeds, select_targets
 
 RESULT_FIELDS = (
     "scene_seed", "grasp_index", "user", "method", "outcome", "success", "collision", "steps",
     "final_distance", "autonomous_steps", "user_only_steps", "user_seed", "wall_time_s",
 )
-SUMMARY_FIELDS = ("user", "method", "trials", "SR", "CR", "TOR", "reached", "mean_iterations")
+SUMMARY_FIELDS = ("user", "method", "trials", "SR", "CR", "TOR", "reached", "mean_iterations",
+                  "paired_trials", "wins", "losses", "mcnemar_p")
 DEFAULT_USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
 DEFAULT_METHODS = ("direct", "ho", "rtv3")
-METHOD_LABELS = {"direct": "Direct", "ho": "HO", "rtv3": "RT-V3"}
+METHOD_LABELS = {"direct": "Direct", "ho": "HO", "rtv3": "RT-V3", "oracle": "Oracle", "oracle_goal": "Oracle (goal)"}
+PAPER_TABLE2_SR = {
+    "noisy": {"rtv3": 84.1, "direct": 62.4, "ho": 42.8},
+    "laggy": {"rtv3": 86.1, "direct": 80.3, "ho": 9.4},
+    "mode_switching": {"rtv3": 83.3, "direct": 74.2, "ho": 18.0},
+    "single_dof": {"rtv3": 69.8, "direct": 50.5, "ho": 23.1},
+}
+"""The paper's Table II success rates (%) per user and method (their simulation)."""
+PAPER_DIRECT_ITERATIONS = {"noisy": 81.1, "laggy": 58.0, "mode_switching": 118.0, "single_dof": 129.0}
+GOAL_FIELDS = ("scene_seed", "grasp_index", "check")
 TARGET_SALT = 17
 """Salt of the seeded goal choice (:func:`rtv3_maniskill.records.select_targets`) of benchmark runs."""
 RESULT_KEY = ("scene_seed", "grasp_index", "user", "method")
@@ -70,7 +91,8 @@ class BenchmarkConfig:
     users: Sequence[str] = DEFAULT_USERS
     methods: Sequence[str] = DEFAULT_METHODS
     seed: int = 9
-    max_grasps_per_scene: int | None = None
+    goals_per_scene: int | None = None
+    """Feasible goals per scene (a seeded random subset); None = every feasible goal."""
     max_steps: int = 150
     stop_on_contact: bool = True
     """End a trial at the first robot contact, a failure (the paper's protocol); False lets it go on
@@ -105,8 +127,8 @@ class BenchmarkConfig:
                 raise BenchmarkError(f"{name} lists a name twice: {', '.join(values)}")
         if self.scenes < 1:
             raise BenchmarkError(f"scenes must be >= 1, got {self.scenes}")
-        if self.max_grasps_per_scene is not None and self.max_grasps_per_scene < 1:
-            raise BenchmarkError(f"max_grasps_per_scene must be >= 1 or None, got {self.max_grasps_per_scene}")
+        if self.goals_per_scene is not None and self.goals_per_scene < 1:
+            raise BenchmarkError(f"goals_per_scene must be >= 1 or None, got {self.goals_per_scene}")
         if self.max_steps < 1:
             raise BenchmarkError(f"max_steps must be >= 1, got {self.max_steps}")
         if self.obs_mode not in ("state_dict", "pointcloud"):
@@ -139,6 +161,11 @@ class BenchmarkConfig:
             settings.pop(key)
         return settings
 
+    @property
+    def uses_shared_controller(self) -> bool:
+        """Whether a method runs the RT-V3 fusion (RT-V3 or an oracle)."""
+        return any(m in ("rtv3", "oracle", "oracle_goal") for m in self.methods)
+
     def scene_seeds(self) -> list[int]:
         return scene_seeds(self.seed, self.scenes)
 
@@ -148,10 +175,11 @@ class BenchmarkConfig:
         place is not mixed with results of the old one."""
         return dict(
             seed=self.seed, max_steps=self.max_steps, stop_on_contact=self.stop_on_contact, obs_mode=self.obs_mode, rendered_context=self.rendered_context,
-            scene_type=self.scene_type, ho_variant=self.ho_variant, max_grasps_per_scene=self.max_grasps_per_scene,
+            scene_type=self.scene_type, ho_variant=self.ho_variant, goals_per_scene=self.goals_per_scene,
+            protocol="authors: ready-pose start, feasible goals",
             policy_path=str(policy_path.resolve()) if policy_path is not None else None,
             policy_weights_sha256=weights_digest(policy_path) if policy_path is not None else None,
-            shared_control=self._shared_control_settings() if "rtv3" in self.methods else None, **self.extra,
+            shared_control=self._shared_control_settings() if self.uses_shared_controller else None, **self.extra,
         )
 
 
@@ -213,11 +241,44 @@ def read_results(path: Path) -> list[dict[str, Any]]:
 # ----------------------------------------------------------------------------- summary
 
 
+def mcnemar_exact(wins: int, losses: int) -> float:
+    """Two-sided exact McNemar p-value of ``wins`` against ``losses`` (the discordant pairs):
+    a binomial test of ``wins`` in ``wins + losses`` trials at 1/2; 1.0 without discordant pairs."""
+    from scipy.stats import binomtest
+
+    n = int(wins) + int(losses)
+    return 1.0 if n == 0 else float(binomtest(int(wins), n, 0.5).pvalue)
+
+
+def paired_with_baseline(rows: Iterable[dict[str, Any]], baseline: str = "direct") -> dict[tuple[str, str], dict[str, Any]]:
+    """Per (user, method) other than ``baseline``: the trials both ran (same scene, goal and user
+    noise), ``wins`` (success where the baseline failed), ``losses`` (the reverse) and the exact
+    McNemar p-value."""
+    outcome: dict[tuple[str, str], dict[tuple[int, int], bool]] = {}
+    for row in rows:
+        key = (int(row["scene_seed"]), int(row["grasp_index"]))
+        outcome.setdefault((row["user"], row["method"]), {})[key] = row["outcome"] == "success"
+    out = {}
+    for (user, method), trials in outcome.items():
+        base = outcome.get((user, baseline))
+        if method == baseline or base is None:
+            continue
+        common = trials.keys() & base.keys()
+        wins = sum(1 for k in common if trials[k] and not base[k])
+        losses = sum(1 for k in common if base[k] and not trials[k])
+        out[(user, method)] = dict(paired_trials=len(common), wins=wins, losses=losses,
+                                   mcnemar_p=mcnemar_exact(wins, losses))
+    return out
+
+
 def summarize(rows: Iterable[dict[str, Any]], users: Sequence[str] | None = None,
               methods: Sequence[str] | None = None) -> list[dict[str, Any]]:
     """Per (user, method): trials, SR / CR / TOR % (exclusive outcomes, they add up to 100), reached %
-    (pre-grasp reached, contact or not), mean iterations of the successful trials (NaN if none).
+    (pre-grasp reached, contact or not), mean iterations of the successful trials (NaN if none), and
+    the paired comparison with Direct (:func:`paired_with_baseline`; None for Direct itself).
     Every row counts; ``users`` / ``methods`` only set the order (names not listed follow, sorted)."""
+    rows = list(rows)
+    paired = paired_with_baseline(rows)
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for row in rows:
         groups.setdefault((row["user"], row["method"]), []).append(row)
@@ -239,6 +300,7 @@ def summarize(rows: Iterable[dict[str, Any]], users: Sequence[str] | None = None
                 TOR=100.0 * outcomes.count("timeout") / n,
                 reached=100.0 * sum(int(t["success"]) for t in trials) / n,
                 mean_iterations=float(np.mean([int(t["steps"]) for t in wins])) if wins else math.nan,
+                **paired.get((u, m), dict(paired_trials=None, wins=None, losses=None, mcnemar_p=None)),
             ))
     return out
 
@@ -247,22 +309,51 @@ def _fmt(value: float, digits: int = 1) -> str:
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
 
 
-def summary_markdown(summary: Sequence[dict[str, Any]]) -> str:
-    """Markdown table: one row per (user, method)."""
-    lines = [
-        "| User | Method | Trials | SR % (↑) | CR % (↓) | TOR % (↓) | reached % | Iter (↓) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
+def _paired_text(s: dict[str, Any]) -> tuple[str, str]:
+    if s.get("wins") is None:
+        return "-", "-"
+    return f"{s['wins']} / {s['losses']}", f"{s['mcnemar_p']:.3g}"
+
+
+def _paper_text(s: dict[str, Any]) -> str:
+    paper = PAPER_TABLE2_SR.get(s["user"], {}).get(s["method"])
+    return "-" if paper is None else f"{paper:.1f}"
+
+
+def goal_counts(path: Path) -> dict[str, int]:
+    """Candidates per goal check (``goals.csv``), plus ``candidates`` and ``scenes``."""
+    rows = RecordStore.read(path, GOAL_FIELDS) if Path(path).is_file() else []
+    counts = {check: sum(1 for r in rows if r["check"] == check) for check in sorted({r["check"] for r in rows})}
+    return dict(counts, candidates=len(rows), scenes=len({r["scene_seed"] for r in rows}))
+
+
+def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | None = None) -> str:
+    """Markdown table: one row per (user, method), paired with Direct, the paper's SR beside."""
+    lines = []
+    if goals and goals.get("candidates"):
+        infeasible = ", ".join(f"{v} {k}" for k, v in goals.items() if k not in ("feasible", "candidates", "scenes"))
+        lines += [f"Goals: {goals.get('feasible', 0)} feasible of {goals['candidates']} grasp candidates in "
+                  f"{goals['scenes']} scenes (infeasible, never run: {infeasible or 'none'}).", ""]
+    lines += [
+        "| User | Method | Trials | SR % (↑) | CR % (↓) | TOR % (↓) | reached % | Iter (↓) | W / L vs Direct | McNemar p "
+        "| paper SR % |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for s in summary:
+        paired, p = _paired_text(s)
         lines.append(
             f"| {s['user']} | {METHOD_LABELS.get(s['method'], s['method'])} | {s['trials']} | {_fmt(s['SR'])} | "
-            f"{_fmt(s['CR'])} | {_fmt(s['TOR'])} | {_fmt(s['reached'])} | {_fmt(s['mean_iterations'])} |"
+            f"{_fmt(s['CR'])} | {_fmt(s['TOR'])} | {_fmt(s['reached'])} | {_fmt(s['mean_iterations'])} | "
+            f"{paired} | {p} | {_paper_text(s)} |"
         )
     notes = (
         "\nOne outcome per trial: CR = a robot contact came first (the trial fails), SR = the target "
         "pre-grasp was reached first (pose distance < 0.1), TOR = neither within the step limit; reached: "
         "the pre-grasp was reached with or without a contact; Iter: mean control steps (20 Hz) of the "
-        "successful trials.\n"
+        "successful trials. W / L: trials this method succeeded where Direct failed / the reverse, on the "
+        "same goals and user noise; McNemar p: exact two-sided test of W against L. Paper SR: Table II "
+        "(their simulation; their Direct took 81 / 58 / 118 / 129 iterations for noisy / laggy / "
+        "mode-switching / single-DoF).\n"
     )
     return "\n".join(lines) + "\n" + notes
 
@@ -308,7 +399,7 @@ def write_summaries(output: Path, users: Sequence[str] | None = None, methods: S
         writer.writeheader()
         for s in summary:
             writer.writerow({k: (f"{v:.3f}" if isinstance(v, float) else v) for k, v in s.items()})
-    (output / "summary.md").write_text(summary_markdown(summary))
+    (output / "summary.md").write_text(summary_markdown(summary, goal_counts(output / "goals.csv")))
     if summary:
         plot_success_rates(summary, output / "success_rates.png")
     return summary
@@ -376,8 +467,10 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     from tqdm import tqdm
 
     from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_speed_limits, make_method, run_episode
+    from rtv3_maniskill.experiments.goals import check_scene_goals
     from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT, load_policy
     from rtv3_maniskill.shared_control.simulated_users import make_user
+    from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
 
     torch.set_num_threads(1)
     output = config.output
@@ -389,7 +482,10 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
         policy = load_policy(policy_path)  # clear error when missing
     elif need_policy and config.policy_path is not None:
         policy_path = Path(config.policy_path)
-    results = results_store(output, config.fingerprint(policy_path))
+    fingerprint = config.fingerprint(policy_path)
+    results = results_store(output, fingerprint)
+    goal_checks = RecordStore(output / "goals.csv", GOAL_FIELDS, ("scene_seed", "grasp_index"),
+                              {k: fingerprint[k] for k in ("seed", "scene_type", "protocol")})
 
     env_kwargs: dict[str, Any] = dict(obs_mode=config.obs_mode, scene_type=config.scene_type)
     if policy is not None:
@@ -405,8 +501,16 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     try:
         for scene_seed in config.scene_seeds():
             env.reset(seed=scene_seed)
-            valid = torch.nonzero(env.base.grasps_mask[0] > 0.5).flatten().tolist()
-            grasps = select_targets(valid, config.max_grasps_per_scene, config.seed, scene_seed, salt=TARGET_SALT)
+            count = int((env.base.grasps_mask[0] > 0.5).sum())
+            checks = [goal_checks.get((scene_seed, i)) for i in range(count)]
+            if any(c is None for c in checks):  # a scene not checked yet (or only in part)
+                for i, check in enumerate(check_scene_goals(env.base, seed=scene_seed)):
+                    if checks[i] is None:
+                        goal_checks.append(dict(scene_seed=scene_seed, grasp_index=i, check=check))
+                checks = [goal_checks.get((scene_seed, i)) for i in range(count)]
+            feasible = [i for i, c in enumerate(checks) if c["check"] == "feasible"]
+            grasps = select_targets(feasible, config.goals_per_scene, config.seed, scene_seed, salt=TARGET_SALT)
+            pregrasps = se3.translate_along_z(env.base.grasp_poses[0].double(), -PREGRASP_DISTANCE)
             bar.total += len(grasps) * per_grasp
             bar.refresh()
             for g in grasps:
@@ -418,9 +522,11 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
                             bar.update(1)
                             continue
                         start = time.perf_counter()
+                        if method_name in ("oracle", "oracle_goal"):  # the prior that knows the scene
+                            method.policy.set_goals(pregrasps[feasible] if method_name == "oracle" else pregrasps[[g]])
                         result = run_episode(
-                            env, method, make_user(user_name, u_seed), max_steps=config.max_steps,
-                            seed=scene_seed, options=dict(target_grasp_index=g), stop_on_contact=config.stop_on_contact,
+                            env, method, make_user(user_name, u_seed), max_steps=config.max_steps, seed=scene_seed,
+                            options=dict(target_grasp_index=g, init_qpos=READY_QPOS), stop_on_contact=config.stop_on_contact,
                         )
                         counts = result.mode_counts
                         results.append(dict(
@@ -436,5 +542,6 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     finally:
         bar.close()
         results.close()
+        goal_checks.close()
         env.close()
     return write_summaries(output, config.users, config.methods)

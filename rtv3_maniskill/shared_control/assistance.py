@@ -6,7 +6,9 @@ from typing import Any, Protocol, runtime_checkable
 
 import torch
 
-METHOD_NAMES = ("direct", "ho", "rtv3")
+METHOD_NAMES = ("direct", "ho", "rtv3", "oracle", "oracle_goal")
+"""Assistance methods by name; the oracles are RT-V3's controller around a prior that knows the
+scene (:class:`~rtv3_maniskill.shared_control.oracle_prior.OraclePrior`)."""
 
 
 @runtime_checkable

@@ -27,6 +27,7 @@ Every output is clamped to ``max_linear_speed`` / ``max_angular_speed`` (norms).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -40,6 +41,8 @@ from rtv3_maniskill.shared_control.twist_utils import check_speed_limits, clamp_
 from rtv3_maniskill.twist_mixture import TwistMixture
 
 MODES = ("shared", "autonomous", "user_only")
+EVIDENCE_FLOOR = 20.0
+"""Nats: the recursive belief never rules a class out by more than this (``belief_memory``)."""
 UNCOMMANDED_AXES = ("missing", "zero")
 
 
@@ -94,6 +97,12 @@ class SharedControlConfig:
     user_cov_floor: float = 0.01
     reweight_rotation_at: str = "prior"
     """See :func:`posterior.fuse_user_command` ("prior" = paper, "fused" = docs/PAPER_NOTES.md)."""
+    belief_memory: float = 0.0
+    """Recursive goal belief. 0 (the paper): every step's class weights are the prior's alone, the
+    evidence of earlier commands is forgotten. In (0, 1]: the log-likelihood of the user's commands
+    under each class is accumulated over the shared steps, decayed by this factor per step, and
+    added to the prior's log-weights, so consistent commands build up a belief in one class (1 =
+    exact Bayes for a goal that does not change)."""
     mode_search_starts: int = 3
     mode_search_iters: int = 10
     """Most mean-shift iterations of the mode search (:func:`posterior.mixture_mode`)."""
@@ -118,6 +127,8 @@ class SharedControlConfig:
             raise ValueError("need mode_search_starts >= 1, mode_search_iters >= 0 and mode_search_tol >= 0, got "
                              f"{self.mode_search_starts}, {self.mode_search_iters}, {self.mode_search_tol}")
         posterior.ood_threshold(self.ood_alpha)  # validates alpha
+        if not 0.0 <= self.belief_memory <= 1.0:
+            raise ValueError(f"belief_memory must be in [0, 1], got {self.belief_memory}")
 
 
 @dataclass
@@ -237,15 +248,41 @@ class SharedController:
         self._batch_size: int | None = None
         self._ood_remaining = torch.zeros(0, dtype=torch.long)
         self._user_cov: posterior.UserCovarianceEstimator | None = None
+        self._evidence: torch.Tensor | None = None
+        """``(B, K)`` accumulated log-likelihood of the user's commands per class (``belief_memory``)."""
         self.last_diagnostics: SharedControlDiagnostics | None = None
 
     def reset(self) -> None:
-        """Start a new episode: reset the policy, the OOD window and the user covariance."""
+        """Start a new episode: reset the policy, the OOD window, the user covariance and the belief."""
         self.policy.reset()
         self._batch_size = None
         self._ood_remaining = torch.zeros(0, dtype=torch.long)
         self._user_cov = None
+        self._evidence = None
         self.last_diagnostics = None
+
+    def _with_belief(self, mixture: TwistMixture) -> TwistMixture:
+        """The prior's mixture with the accumulated evidence of earlier commands added to its class
+        log-weights (recursive goal belief; unchanged when ``belief_memory`` is 0)."""
+        if self.config.belief_memory == 0.0:
+            return mixture
+        lw = mixture.log_weights.double()
+        if self._evidence is None or self._evidence.shape != lw.shape:
+            self._evidence = torch.zeros_like(lw)
+        lw = lw + self._evidence
+        return dataclasses.replace(mixture, log_weights=lw - torch.logsumexp(lw, -1, keepdim=True))
+
+    def _remember(self, shared: torch.Tensor, prior: posterior.FactorizedTwistMixture,
+                  fused: posterior.FactorizedTwistMixture | None) -> None:
+        """Decay the evidence and add this step's class log-likelihoods where it was shared."""
+        if self.config.belief_memory == 0.0 or self._evidence is None:
+            return
+        gained = torch.zeros_like(self._evidence)
+        if fused is not None:
+            gained = torch.where(shared[:, None], fused.log_weights - prior.log_weights, gained)
+        evidence = self.config.belief_memory * self._evidence + gained
+        # Relative to the best class, floored: a user who changes their mind can still be followed.
+        self._evidence = (evidence - evidence.max(-1, keepdim=True).values).clamp_min(-EVIDENCE_FLOOR)
 
     def _init_batch(self, b: int) -> None:
         if self._batch_size is None:
@@ -311,6 +348,7 @@ class SharedController:
             mixture = self.policy.predict_step0_mixture(observation)
             if mixture.log_weights.shape[0] != b:
                 raise ValueError(f"policy returned a mixture of batch {mixture.log_weights.shape[0]}, expected {b}")
+            mixture = self._with_belief(mixture)
             fused = None
             fired = torch.zeros(b, dtype=torch.bool)
             if (active & ~no_grasps).any():
@@ -348,6 +386,7 @@ class SharedController:
                 )
             prior_weights = prior.weights
             weights = shown.weights
+            self._remember(shared, prior, fused)
         self._user_cov.update(user, active)
 
         action = clamp_twist_speed(action, c.max_linear_speed, c.max_angular_speed)

@@ -48,10 +48,17 @@ from rtv3_maniskill.tasks.scene_generation import (
     generate_layout,
     matrix_to_sapien_pose,
 )
-from rtv3_maniskill.tasks.scene_geometry import ROBOT_BASE_POSITION, WORKSPACE_CENTER, SceneGeometry
+from rtv3_maniskill.tasks.scene_geometry import (
+    READY_QPOS,
+    ROBOT_BASE_POSITION,
+    TABLE_TOP_CENTER,
+    WORKSPACE_CENTER,
+    SceneGeometry,
+)
 from rtv3_maniskill.tasks.twist_controller import PandaTwist  # noqa: F401  (registers the agent)
 
-REST_QPOS = np.array([0.0, np.pi / 8, 0.0, -np.pi * 5 / 8, 0.0, np.pi * 3 / 4, np.pi / 4, 0.04, 0.04])
+START_QPOS = np.concatenate([READY_QPOS, [0.04, 0.04]])
+"""Default start (arm + open fingers): the ready pose, plus N(0, 0.02) per joint at reset."""
 
 
 CLOUD_SEED_OFFSET = 104729
@@ -160,6 +167,9 @@ class GraspClutterEnv(BaseEnv):
         self._contact_links = None
         self.table_scene = TableSceneBuilder(self, robot_init_qpos_noise=0.0)
         self.table_scene.build()
+        self.table_scene.table.set_pose(self._table_pose)
+        if self.scene.can_render():
+            self._build_pedestal()
         self.layouts, self.grasp_sets, self.objects = [], [], []
         grasps = torch.zeros(self.num_envs, self.max_grasps, GRASP_DIM)
         grasps_mask = torch.zeros(self.num_envs, self.max_grasps)
@@ -203,6 +213,22 @@ class GraspClutterEnv(BaseEnv):
                 return layout, grasp_set
         raise RuntimeError("no graspable clutter scene found in 20 layouts; check the object set")
 
+    @property
+    def _table_pose(self) -> sapien.Pose:
+        """ManiSkill's table moved so that its top is ``TABLE_TOP_CENTER``'s slab (near edge clear of the robot)."""
+        height = self.table_scene.table_height
+        return sapien.Pose(p=[float(TABLE_TOP_CENTER[0]), 0.0, -height], q=[np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)])
+
+    def _build_pedestal(self) -> None:
+        """A visual column from the floor to the robot base (the base stands below the table top)."""
+        builder = self.scene.create_actor_builder()
+        floor = -self.table_scene.table_height
+        half = (ROBOT_BASE_POSITION[2] - floor) / 2
+        material = sapien.render.RenderMaterial(base_color=[0.3, 0.3, 0.32, 1.0])
+        builder.add_box_visual(half_size=[0.12, 0.12, half], material=material)
+        builder.initial_pose = sapien.Pose(p=[float(ROBOT_BASE_POSITION[0]) - 0.04, 0.0, floor + half])
+        builder.build_kinematic(name="robot_pedestal")
+
     def _build_object(self, obj, pose: np.ndarray, env: int, index: int, material):
         builder = self.scene.create_actor_builder()
         add_collision_shapes(builder, obj.shapes, material, obj.density)
@@ -234,7 +260,7 @@ class GraspClutterEnv(BaseEnv):
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
         with torch.device(self.device):
             b = len(env_idx)
-            self.table_scene.table.set_pose(self.table_scene.table.pose)
+            self.table_scene.table.set_pose(self._table_pose)
             # Objects back to their settled layout poses, at rest.
             for i in env_idx.tolist():
                 for actor, pose in zip(self.objects[i], self.layouts[i].object_poses):
@@ -242,9 +268,9 @@ class GraspClutterEnv(BaseEnv):
                     actor.set_linear_velocity(torch.zeros(1, 3))
                     actor.set_angular_velocity(torch.zeros(1, 3))
             qpos = options.get("init_qpos")
-            if qpos is None:
+            if qpos is None:  # the ready pose, slightly perturbed
                 noise = torch.as_tensor(self._batched_episode_rng[env_idx].normal(0, 0.02, 9), dtype=torch.float32)
-                qpos = torch.as_tensor(REST_QPOS, dtype=torch.float32) + noise.reshape(b, 9)
+                qpos = torch.as_tensor(START_QPOS, dtype=torch.float32) + noise.reshape(b, 9)
             else:
                 qpos = torch.as_tensor(qpos, dtype=torch.float32).reshape(-1, torch.as_tensor(qpos).shape[-1]).expand(b, -1).clone()
                 if qpos.shape[-1] == 7:

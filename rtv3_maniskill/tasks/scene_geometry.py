@@ -14,12 +14,18 @@ from typing import Literal
 import numpy as np
 import trimesh
 
-# ManiSkill's TableSceneBuilder: a kinematic box, top at z = 0, x in [-0.7245, 0.4845],
-# y in [-1.209, 1.209]; the Panda base stands on it at (-0.615, 0, 0). Only its top
-# slab matters for collisions.
-TABLE_TOP_CENTER = np.array([-0.12, 0.0, -0.025])
+# The authors' placement (docs/PAPER_NOTES.md, "Authors' benchmark protocol"): the Panda base
+# stands 0.45 m behind the workspace centre and 0.15 m below the workspace floor (the table top),
+# so that the ready pose holds the TCP 0.34 m above the table at the workspace's near edge.
+# ManiSkill's TableSceneBuilder table (a kinematic box, top at z = 0, 1.209 m deep, 2.418 m wide)
+# is moved so that its near edge clears the robot's shoulder by 10 cm; only its top slab matters
+# for collisions.
+ROBOT_BASE_POSITION = np.array([-0.50, 0.0, -0.15])
+TABLE_NEAR_EDGE_X = -0.40
 TABLE_TOP_HALF_SIZE = np.array([0.6045, 1.209, 0.025])
-ROBOT_BASE_POSITION = np.array([-0.615, 0.0, 0.0])
+TABLE_TOP_CENTER = np.array([TABLE_NEAR_EDGE_X + TABLE_TOP_HALF_SIZE[0], 0.0, -0.025])
+READY_QPOS = np.array([0.0, -np.pi / 4, 0.0, -3 * np.pi / 4, 0.0, np.pi / 2, np.pi / 4])
+"""The Panda ready pose (arm joints, rad): every shared-control trial starts here, TCP pointing down."""
 WORKSPACE_CENTER = np.array([-0.05, 0.0, 0.15])
 """Centre of the 30 x 30 x 30 cm workspace cube (world frame, resting on the table)."""
 WORKSPACE_HALF_SIZE = 0.15
