@@ -270,20 +270,23 @@ class NeoController:
         # world.nearest_points ran the forward kinematics into world.data.
         pin.computeJointJacobians(self.model, self.world.data, q)
         scale = c.collision_gain / (c.influence_distance - c.stop_distance)
-        count = 0
-        jacobians: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        for d, p, n, joint in zip(near.distances, near.robot_points, near.normals, near.robot_joints):
-            if joint not in jacobians:
-                jac = pin.getJointJacobian(self.model, self.world.data, int(joint), pin.LOCAL_WORLD_ALIGNED)
-                jacobians[joint] = (jac, self.world.data.oMi[int(joint)].translation.copy())
-            jac, origin = jacobians[joint]
-            # Velocity of the robot's witness point: v_p = J_v qd + w x (p - o) = (J_v - [p - o]x J_w) qd.
-            row = n @ jac[:3] - np.cross(n, p - origin) @ jac[3:]
-            if np.linalg.norm(row) < 1e-6:  # a link the arm cannot move towards or away from this obstacle
-                continue
-            out.rows.append(row)  # n^T v_p = -d_dot <= xi (d - d_s) / (d_i - d_s)
-            out.bounds.append(scale * (d - c.stop_distance))
-            count += 1
+        joints = np.unique(near.robot_joints)
+        jac = np.zeros((self.model.njoints, 6, DOF))
+        origin = np.zeros((self.model.njoints, 3))
+        for j in joints:
+            jac[j] = pin.getJointJacobian(self.model, self.world.data, int(j), pin.LOCAL_WORLD_ALIGNED)
+            origin[j] = self.world.data.oMi[int(j)].translation
+        jk, n = near.robot_joints, near.normals
+        # Velocity of each robot witness point p: v_p = J_v qd + w x (p - o) = (J_v - [p - o]x J_w) qd, and
+        # n^T v_p = -d_dot (n points from the robot to the obstacle): rows (K, 7).
+        rows = np.einsum("ki,kij->kj", n, jac[jk, :3]) - np.einsum(
+            "ki,kij->kj", np.cross(n, near.robot_points - origin[jk]), jac[jk, 3:]
+        )
+        # Drop pairs the arm can neither approach nor leave (a zero row would be infeasible inside d_s).
+        keep = np.linalg.norm(rows, axis=1) >= 1e-6
+        out.rows.extend(rows[keep])  # n^T v_p <= xi (d - d_s) / (d_i - d_s)
+        out.bounds.extend(scale * (near.distances[keep] - c.stop_distance))
+        count = int(keep.sum())
         return count, float(near.distances.min())
 
     def step(self, q, twist) -> NeoStep:

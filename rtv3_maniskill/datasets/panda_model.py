@@ -441,15 +441,22 @@ class PandaCollisionWorld:
         pair_ids = np.asarray(pair_ids, dtype=np.int64).reshape(-1)
         pin.forwardKinematics(self.model, self.data, q)
         pin.updateGeometryPlacements(self.model, self.data, self.geometry, self.geometry_data)
-        if not hasattr(self, "_bounding_spheres") or len(self._bounding_spheres[1]) != self.geometry.ngeoms:
+        cache = getattr(self, "_distance_cache", None)
+        if cache is None or cache[0] is not self.geometry:  # built once per scene (set_scene makes a new model)
             objs = self.geometry.geometryObjects
             centers = np.array([np.asarray(g.geometry.aabb_center, dtype=np.float64) for g in objs])
             radii = np.array([float(g.geometry.aabb_radius) for g in objs])
+            parents = np.array([g.parentJoint for g in objs], dtype=np.int64)
             firsts = np.array([cp.first for cp in self.geometry.collisionPairs], dtype=np.int64)
             seconds = np.array([cp.second for cp in self.geometry.collisionPairs], dtype=np.int64)
-            self._bounding_spheres = (centers, radii, firsts, seconds)
-        centers, radii, firsts, seconds = self._bounding_spheres
-        world_centers = np.array([self.geometry_data.oMg[i].act(centers[i]) for i in range(len(radii))])
+            # Obstacles are fixed in the world (joint 0): their bounding-sphere centres once.
+            world = np.array([self.geometry_data.oMg[i].act(centers[i]) for i in range(len(objs))])
+            cache = (self.geometry, centers, radii, parents, firsts, seconds, world)
+            self._distance_cache = cache
+        _, centers, radii, parents, firsts, seconds, world_centers = cache
+        world_centers = world_centers.copy()
+        for i in self.robot_geometry_ids:
+            world_centers[i] = self.geometry_data.oMg[i].act(centers[i])
         a, b = firsts[pair_ids], seconds[pair_ids]
         gap = np.linalg.norm(world_centers[a] - world_centers[b], axis=1) - radii[a] - radii[b]
         keep = pair_ids[gap <= max_distance]
@@ -469,7 +476,7 @@ class PandaCollisionWorld:
             robot_points=np.array([r[2] for r in rows]),
             obstacle_points=np.array([r[3] for r in rows]),
             normals=np.array([r[4] for r in rows]),
-            robot_joints=np.array([self.geometry.geometryObjects[int(g)].parentJoint for g in first], dtype=np.int64),
+            robot_joints=parents[first],
         )
 
 
