@@ -2,12 +2,13 @@
 
 For each grasp candidate of a scene (paper, "Simulation Setup and Data Collection"):
 
-1. a random initial TCP pose in the workspace, oriented as a person would start (gripper
-   pointing down within 45 degrees, random yaw), reached by collision-free IK;
+1. a collision-free start configuration from the authors' training distribution: the Panda
+   ready pose plus per-joint Gaussian noise (:func:`random_start_configuration`), so that the
+   prior learns around the state every shared-control trial starts from;
 2. an OMPL/Pinocchio plan to the target's pre-grasp, and a check that the straight 5 cm
    approach to the grasp is feasible (``rtv3_maniskill.datasets.planner``);
 3. execution in ``GraspClutter-v1`` at 20 Hz with ``pd_joint_pos_vel`` control, then
-   ``HOLD_STEPS`` steps holding the final pose (the model learns to stop, NOTES.md). With
+   ``HOLD_STEPS`` steps holding the final pose (the model learns to stop, docs/PAPER_NOTES.md). With
    ``end_at="pregrasp"`` (the paper's protocol: trajectories and users target the
    pre-grasp; the final approach is a separate user action) the demonstration ends at the
    pre-grasp; with ``end_at="grasp"`` the approach is executed too;
@@ -26,11 +27,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from rtv3_maniskill import se3
-from rtv3_maniskill import features
-from rtv3_maniskill.tasks.grasp_clutter import PREGRASP_DISTANCE
+from rtv3_maniskill import features, se3
+from rtv3_maniskill.features import PREGRASP_DISTANCE
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
-from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF_SIZE
+from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
 
 HOLD_STEPS = 13
 END_AT = ("pregrasp", "grasp")
@@ -47,6 +47,8 @@ FAILURE_REASONS = (
 )
 _INFEASIBLE = ("ik_failed", "goal_in_collision")
 PREGRASP_POSITION_TOLERANCE = 0.01
+START_ATTEMPTS = 10
+"""Draws of the start distribution tried for a collision-free start before ``no_start_pose``."""
 """m: the executed motion must pass within this distance of the pre-grasp."""
 
 
@@ -74,25 +76,18 @@ class Episode:
     info: dict = field(default_factory=dict)
 
 
-def random_start_pose(rng: np.random.Generator) -> np.ndarray:
-    """A TCP pose ``(4, 4)`` in the upper part of the workspace, pointing down within 45 deg."""
-    position = WORKSPACE_CENTER + np.array(
-        [rng.uniform(-1, 1) * WORKSPACE_HALF_SIZE, rng.uniform(-1, 1) * WORKSPACE_HALF_SIZE, rng.uniform(0.05, 0.15)]
-    )
-    tilt_axis = rng.normal(size=2)
-    tilt_axis = np.array([*tilt_axis / np.linalg.norm(tilt_axis), 0.0])
-    tilt = rng.uniform(0, np.pi / 4)
-    yaw = rng.uniform(-np.pi, np.pi)
-    down = np.diag([1.0, -1.0, -1.0])  # TCP z (approach) pointing down
-    rot = (
-        se3.so3_exp(torch.as_tensor(tilt_axis * tilt)).numpy()
-        @ down
-        @ se3.so3_exp(torch.tensor([0.0, 0.0, yaw], dtype=torch.float64)).numpy()
-    )
-    pose = np.eye(4)
-    pose[:3, :3] = rot
-    pose[:3, 3] = position
-    return pose
+START_NOISE_STD = 0.6 * np.array([0.1, 0.04, 0.1, 0.04, 0.1, 0.1, 0.1])
+"""Per-joint standard deviation of the start distribution, as a fraction of each joint's range
+(docs/PAPER_NOTES.md, "Authors' benchmark protocol")."""
+
+
+def random_start_configuration(rng: np.random.Generator, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Arm joints ``(7,)`` from the authors' demonstration start distribution: the ready pose plus
+    Gaussian noise of standard deviation ``START_NOISE_STD * (upper - lower)`` per joint, clipped to
+    the joint limits ``lower``, ``upper`` ``(7,)`` (rad)."""
+    lower, upper = np.asarray(lower, dtype=np.float64)[:7], np.asarray(upper, dtype=np.float64)[:7]
+    q = READY_QPOS + rng.normal(size=7) * START_NOISE_STD * (upper - lower)
+    return np.clip(q, lower, upper)
 
 
 def describe_grasp(object_name: str, grasp_pose: np.ndarray) -> str:
@@ -166,13 +161,15 @@ class DemonstrationRecorder:
         grasp_set = self.base.grasp_sets[0]
         target_object = int(grasp_set.object_ids[grasp_index])
         q_start = None
-        for attempt in range(10):
-            q_start = self.planner.solve_ik(random_start_pose(rng), seed=seed * 31 + attempt)
-            if q_start is not None:
+        kin = self.planner.kin
+        for _ in range(START_ATTEMPTS):  # a collision-free draw of the start distribution
+            q = random_start_configuration(rng, kin.lower + 1e-3, kin.upper - 1e-3)
+            if self.planner.is_collision_free(q):
+                q_start = q
                 break
         if q_start is None:
             return "no_start_pose"
-        # Parallel-jaw symmetry: aim for the twin closer to the start orientation (NOTES.md).
+        # Parallel-jaw symmetry: aim for the twin closer to the start orientation (docs/PAPER_NOTES.md).
         grasp = canonicalize_symmetric(grasp_set.poses[grasp_index : grasp_index + 1], self.planner.forward_kinematics(q_start))[0]
         pregrasp = se3.translate_along_z(torch.from_numpy(grasp), -PREGRASP_DISTANCE).numpy()
         transit = self.planner.plan_to_pose(q_start, pregrasp, timeout=self.plan_timeout, seed=seed)
@@ -239,4 +236,4 @@ class DemonstrationRecorder:
         )
 
 
-__all__ = ["DemonstrationRecorder", "END_AT", "Episode", "FAILURE_REASONS", "HOLD_STEPS", "describe_grasp", "random_start_pose"]
+__all__ = ["DemonstrationRecorder", "END_AT", "Episode", "FAILURE_REASONS", "HOLD_STEPS", "describe_grasp", "random_start_configuration"]

@@ -8,9 +8,8 @@ Protocol:
   training data used; the default 9 matches ``rtv3 benchmark-shared``);
 * targets: ``max_grasps_per_scene`` grasp candidates per scene (a seeded random subset; the
   paper selects two per scene), one trial per (scene, grasp);
-* start: a random TCP pose in the upper workspace pointing down within 45 deg
-  (``random_start_pose``, as in the demonstrations) reached by collision-free IK, the robot
-  reset there (``init_qpos``);
+* start: a collision-free draw of the demonstrations' start distribution (the ready pose plus
+  per-joint Gaussian noise, ``random_start_configuration``), the robot reset there (``init_qpos``);
 * context: the paper selects target grasps and counts reaching "one of the target poses" as
   a success, i.e. the target poses are the grasp context the policy sees. ``context="target"``
   (default) shows the policy only the trial's target grasp (all other rows of
@@ -302,16 +301,16 @@ class PlanningBenchmark:
 
         Start poses already within the success threshold of a context grasp are redrawn.
         """
-        from rtv3_maniskill.datasets.demonstrations import random_start_pose
+        from rtv3_maniskill.datasets.demonstrations import random_start_configuration
 
         rng = np.random.default_rng([self.config.seed, int(self.scene_seed), grasp])
+        kin = self.planner.kin
         for attempt in range(1, self.config.start_pose_attempts + 1):
-            pose = random_start_pose(rng)
-            start_distance = planning_distance(torch.as_tensor(pose), context_poses).min()
-            if bool(is_planning_success(start_distance, self.config.threshold)):
+            q = random_start_configuration(rng, kin.lower + 1e-3, kin.upper - 1e-3)
+            pose = torch.as_tensor(kin.forward_kinematics(q))
+            if bool(is_planning_success(planning_distance(pose, context_poses).min(), self.config.threshold)):
                 continue
-            q = self.planner.solve_ik(pose, seed=int(self.scene_seed) * 31 + grasp * 1009 + attempt)
-            if q is not None:
+            if self.planner.is_collision_free(q):
                 return q, attempt
         return None, self.config.start_pose_attempts
 
