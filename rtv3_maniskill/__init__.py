@@ -17,8 +17,9 @@ MAX_EPISODE_STEPS = 150
 def make_grasp_clutter(**kwargs):
     """gymnasium entry point of ``GraspClutter-v1``: loads the task (ManiSkill's own registration
     replaces this lazy one) and builds the env through ManiSkill's registry."""
-    import rtv3_maniskill.tasks  # noqa: F401  (replaces this lazy registration by ManiSkill's)
     from mani_skill.utils.registration import make
+
+    import rtv3_maniskill.tasks  # noqa: F401  (replaces this lazy registration by ManiSkill's)
 
     return make(ENV_ID, **kwargs)
 

@@ -7,9 +7,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
 from rtv3_maniskill import se3  # noqa: E402
-import torch  # noqa: E402
 
 FINGER_LENGTH = 0.045
 PALM_OFFSET = 0.06

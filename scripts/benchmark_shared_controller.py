@@ -46,10 +46,10 @@ def main(argv: list[str] | None = None) -> int:
 
     from rtv3_maniskill.experiments.episodes import SharedControlEnv
     from rtv3_maniskill.features import observation_from_env
+    from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT, load_policy
     from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
     from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
     from rtv3_maniskill.shared_control import SharedControlConfig, SharedController, make_user
-    from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT, load_policy
 
     path = args.policy_path or (SHIPPED_CHECKPOINT if (SHIPPED_CHECKPOINT / "model.safetensors").is_file() else None)
     if path is not None:

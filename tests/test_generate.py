@@ -15,11 +15,17 @@ import numpy as np
 import pytest
 import torch
 
-from rtv3_maniskill import features
-from rtv3_maniskill import se3
+from rtv3_maniskill import features, se3
 from rtv3_maniskill.cli import main
 from rtv3_maniskill.datasets.demonstrations import HOLD_STEPS
-from rtv3_maniskill.datasets.lerobot_export import ATTEMPT_FIELDS, ATTEMPTS, REPO_ID, SETTINGS, StagingArea, end_at_pregrasp
+from rtv3_maniskill.datasets.lerobot_export import (
+    ATTEMPT_FIELDS,
+    ATTEMPTS,
+    REPO_ID,
+    SETTINGS,
+    StagingArea,
+    end_at_pregrasp,
+)
 from rtv3_maniskill.records import RecordStore
 from rtv3_maniskill.tasks.grasp_sampler import PREGRASP_DISTANCE
 

@@ -87,7 +87,7 @@ def test_goals_are_the_pre_grasps_of_the_observed_grasps_and_their_twins():
     ho = HindsightOptimization("rtv3_authors", None, None)
     user = make_user("ideal")
     user.reset(GOALS[2])
-    pose = drive(ho, user, START.clone(), 50, grasps)
+    drive(ho, user, START.clone(), 50, grasps)
     episode = ho.episodes[0]
     assert episode.goal_ids.tolist() == [0, 1, 2]  # one goal per grasp, twins share it
     assert episode.targets.shape == (6, 4, 4)

@@ -725,7 +725,8 @@ def _write_dataset(root, cfg: RTV3Config, episodes: int = 2, frames: int = 24):
 def test_lerobot_dataset_factory_and_processors_train(tmp_path):
     from lerobot.datasets.factory import resolve_delta_timestamps
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
-    from lerobot.policies.factory import get_policy_class, make_policy as lerobot_make_policy, make_pre_post_processors
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+    from lerobot.policies.factory import make_policy as lerobot_make_policy
     from lerobot.utils.import_utils import register_third_party_plugins
 
     register_third_party_plugins()  # what lerobot-train / lerobot-eval do first

@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import numpy as np
 
 MODE_COLORS = {"autonomous": ("0.55", 0.30, "autonomous (prior's most likely action)"),
                "user_only": ("tab:red", 0.12, "user only (OOD / near the surface)")}
@@ -70,7 +73,7 @@ def _make_env(want_video: bool, env_kwargs: dict[str, Any]):
         return SharedControlEnv(render_backend="none", **env_kwargs), False
 
 
-def _goal_pixels(env) -> "np.ndarray | None":
+def _goal_pixels(env) -> np.ndarray | None:
     """Pixels ``(2, 2)`` of the target pre-grasp and grasp positions in the render camera (None if behind it)."""
     import numpy as np
 

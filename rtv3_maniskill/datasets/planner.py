@@ -26,8 +26,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Iterable, Literal
+from typing import Literal
 
 import numpy as np
 import ompl.base as ob
@@ -100,7 +101,6 @@ class JointTrajectory:
         """
         if np.abs(other.q[0] - self.q[-1]).max() > 1e-3:
             raise ValueError("other trajectory does not start at this trajectory's last configuration")
-        dt = float(self.t[1] - self.t[0]) if len(self) > 1 else float(other.t[1] - other.t[0])
         return JointTrajectory(
             q=np.concatenate([self.q, other.q[1:]]),
             qd=np.concatenate([self.qd, other.qd[1:]]),

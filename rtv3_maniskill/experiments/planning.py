@@ -31,14 +31,13 @@ finishes; a rerun skips finished (scene, grasp) rows), ``planning_summary.json``
 
 from __future__ import annotations
 
-import csv
 import json
 import math
-import os
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 import torch

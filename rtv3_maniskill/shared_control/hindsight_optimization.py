@@ -25,8 +25,9 @@ Frames: goals and EE pose are world ``(4, 4)``; twists are EE body frame ``[v, w
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 

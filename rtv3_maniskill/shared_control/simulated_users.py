@@ -27,7 +27,8 @@ autonomy); ``make_user(name, seed, pauses=(command_steps, rest_steps))`` builds 
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import torch

@@ -42,11 +42,11 @@ import trimesh
 from rtv3_maniskill.features import PREGRASP_DISTANCE
 from rtv3_maniskill.se3 import matrix_to_quat, rotate_about_z, translate_along_z
 from rtv3_maniskill.tasks.panda_hand import (
+    CLOSING_REGION_CENTER,
     FINGER_DEPTH,
     FINGERTIP_Z,
     MAX_OPENING,
     PandaHandCollisionModel,
-    CLOSING_REGION_CENTER,
     closing_region_size,
     coal_convex,
 )

@@ -37,7 +37,7 @@ class AxisGaussian:
         return se3.so3_exp(self.axes_rotvec)
 
     @classmethod
-    def from_raw(cls, raw: torch.Tensor, log_sigma_min: float, log_sigma_max: float) -> "AxisGaussian":
+    def from_raw(cls, raw: torch.Tensor, log_sigma_min: float, log_sigma_max: float) -> AxisGaussian:
         """``raw (..., 9)`` = [mean (3), log sigma (3), rotation vector of the axes (3)]."""
         return cls(
             mean=raw[..., 0:3],
@@ -61,7 +61,7 @@ class AxisGaussian:
         eps = torch.randn_like(self.mean) * torch.exp(self.log_sigma)
         return self.mean + (self.axes @ eps[..., None])[..., 0]
 
-    def scaled(self, factor: float) -> "AxisGaussian":
+    def scaled(self, factor: float) -> AxisGaussian:
         """The distribution of ``factor * y`` (used to undo the translation scale)."""
         return AxisGaussian(self.mean * factor, self.log_sigma + math.log(factor), self.axes_rotvec)
 
@@ -81,7 +81,7 @@ class JointGaussian:
     RAW_DIM = 6 + 6 + 15
 
     @classmethod
-    def from_raw(cls, raw: torch.Tensor, log_sigma_min: float, log_sigma_max: float) -> "JointGaussian":
+    def from_raw(cls, raw: torch.Tensor, log_sigma_min: float, log_sigma_max: float) -> JointGaussian:
         """``raw (..., 27)`` = [mean (6), log diag (6), strictly-lower entries (15)]."""
         lead = raw.shape[:-1]
         tril = raw.new_zeros(*lead, 6, 6)

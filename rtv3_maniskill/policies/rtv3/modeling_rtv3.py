@@ -14,15 +14,13 @@ LeRobot's ACT/Diffusion queues). Call exactly one of them per control step, or p
 from __future__ import annotations
 
 import logging
-
 from collections import deque
 from pathlib import Path
 
 import torch
 from huggingface_hub import ModelCard, ModelCardData
-from torch import Tensor
-
 from lerobot.policies.pretrained import PreTrainedPolicy
+from torch import Tensor
 
 from rtv3_maniskill import features as ft
 from rtv3_maniskill.policies.rtv3.batch import (

@@ -92,17 +92,17 @@ class FlatPoints:
     batch_size: int
     order: str | None = None
 
-    def with_feat(self, feat: torch.Tensor) -> "FlatPoints":
+    def with_feat(self, feat: torch.Tensor) -> FlatPoints:
         """The same points with new features ``(L, C')``."""
         return FlatPoints(feat, self.xyz, self.grid, self.batch, self.batch_size, self.order)
 
-    def permute(self, index: torch.Tensor, order: str | None) -> "FlatPoints":
+    def permute(self, index: torch.Tensor, order: str | None) -> FlatPoints:
         """The points in the order ``index (L,)``, sorted along ``order``. Rows are gathered with
         ``index_select``, which on CPU is several times faster than ``tensor[index]``."""
         take = lambda t: t.index_select(0, index)  # noqa: E731
         return FlatPoints(take(self.feat), take(self.xyz), take(self.grid), take(self.batch), self.batch_size, order)
 
-    def serialize(self, order: str) -> "FlatPoints":
+    def serialize(self, order: str) -> FlatPoints:
         """Sort along the space-filling curve within each sample (stable, so ties keep input order).
 
         A list already sorted along ``order`` is returned as is (the stable sort would be the identity).
@@ -140,7 +140,7 @@ class PatchAttention(nn.Module):
         length, dim = feat.shape
         if length == 0:
             return feat
-        p, h = self.patch_size, self.heads
+        p = self.patch_size
         qkv = self.qkv(feat)
         if batch_size == 1:  # contiguous layout (inference): full patches, then the shorter last one
             full = length // p * p
