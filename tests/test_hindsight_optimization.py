@@ -131,6 +131,19 @@ def test_single_goal_assistance_with_rotation_turns_towards_the_goal_orientation
     torch.testing.assert_close(ho2.step(observation_at(START), user)[0, 3:], user[0, 3:])
 
 
+def test_authors_public_variant_keeps_a_scaled_rotation_assistance_and_a_scaled_linear_branch():
+    goal = pose_at((0.0, 0.0, 0.3), (math.pi, 0.0, 0.0)) @ pose_at((0.0, 0.0, 0.0), (0.0, 0.0, 0.5))
+    original = HindsightOptimization("javdani2018", None, None, goals=goal[None]).step(observation_at(START), None)
+    public = HindsightOptimization("rtv3_authors_public", None, None, goals=goal[None]).step(observation_at(START), None)
+    torch.testing.assert_close(public[0, 3:], 0.125 * original[0, 3:])
+    cost = VARIANTS["rtv3_authors_public"].translation
+    d = torch.tensor([0.5], dtype=F64)
+    assert float(cost.value(d)) == pytest.approx(0.6 * ((1.5 + 0.1) * 0.5 - 0.5 * 1.5 * 0.1))
+    assert float(cost.rate(d)) == pytest.approx(0.6 * 1.6)
+    far = HindsightOptimization("rtv3_authors_public", None, None, goals=pose_at((0.5, 0.0, 0.3))[None])
+    assert float(far.step(observation_at(START), None)[0, :3].norm()) == pytest.approx(0.6 * 1.6 / 40.0, rel=1e-5)
+
+
 def test_translation_assistance_magnitude_and_near_goal_scaling():
     far_goal = pose_at((0.5, 0.0, 0.3), (math.pi, 0.0, 0.0))
     ho = HindsightOptimization("javdani2018", None, None, goals=far_goal[None])

@@ -42,8 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="state_dict mode: use the mesh-sampled scene cloud instead of rendering it once per "
                              "scene from the depth camera (the default, as `rtv3 generate` stores it)")
     parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
-    parser.add_argument("--ho-variant", default="rtv3_authors", choices=["rtv3_authors", "javdani2018"],
-                        help="HO constants: the RT-V3 authors' translation-only baseline or the original ones")
+    parser.add_argument("--ho-variant", default="rtv3_authors",
+                        choices=["rtv3_authors", "rtv3_authors_public", "javdani2018"],
+                        help="HO constants: the RT-V3 paper's translation-only baseline, our reading of the "
+                             "authors' public code (rotation assistance x0.125, linear branch x0.6) or the original")
     parser.add_argument("--ood-alpha", type=float, default=None,
                         help="RT-V3 OOD gate chi-square quantile (default 0.85, the authors'); higher trusts the prior more")
     parser.add_argument("--ood-covariance", choices=["class", "predictive"], default=None,
