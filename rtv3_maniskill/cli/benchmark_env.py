@@ -38,7 +38,9 @@ def run(args: argparse.Namespace) -> int:
     generator = torch.Generator().manual_seed(0)
     for _ in tqdm(range(args.repeats), desc="state-mode steps"):
         env.reset()
-        actions = (torch.rand(args.steps, 1, 7, generator=generator) - 0.5) * torch.tensor([0.2] * 3 + [0.8] * 3 + [0.0])
+        actions = (torch.rand(args.steps, 1, 7, generator=generator) - 0.5) * torch.tensor(
+            [0.2] * 3 + [0.8] * 3 + [0.0]
+        )
         start = time.perf_counter()
         for action in actions:
             env.step(action)

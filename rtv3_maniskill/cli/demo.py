@@ -178,7 +178,8 @@ def plot_demo(path: Path, rtv3, direct, title: str, success_threshold: float, to
         if result is None or not result.diagnostics:
             continue
         d = [x["pregrasp_distance"] for x in result.diagnostics]
-        ax.plot((np.arange(len(d)) + 1) * DT, d, color=color, label=f"{name} ({'success' if result.success else 'failure'})")
+        ax.plot((np.arange(len(d)) + 1) * DT, d, color=color,
+                label=f"{name} ({'success' if result.success else 'failure'})")
     ax.axhline(success_threshold, color="k", lw=0.8, ls=":", label="success threshold")
     ax.set_ylabel("distance to pre-grasp")
     ax.set_xlabel("time (s)")
@@ -198,8 +199,10 @@ def _pause_text(pauses: tuple[int, int] | None) -> str:
 def _outcome(result) -> str:
     from rtv3_maniskill.features import DT
 
-    return (f"{result.outcome:9s}  reached={'yes' if result.success else 'no ':3s}  contact={'yes' if result.collision else 'no ':3s}  "
-            f"steps={result.steps:3d} ({result.steps * DT:4.2f} s simulated)  final distance={result.final_distance:.3f}  "
+    return (f"{result.outcome:9s}  reached={'yes' if result.success else 'no ':3s}  "
+            f"contact={'yes' if result.collision else 'no ':3s}  "
+            f"steps={result.steps:3d} ({result.steps * DT:4.2f} s simulated)  "
+            f"final distance={result.final_distance:.3f}  "
             f"wall time={result.wall_time:5.1f} s")
 
 
@@ -241,7 +244,8 @@ def run(args: argparse.Namespace) -> int:
           f"up to {args.max_steps} steps")
 
     limits = controller_speed_limits(base)
-    rtv3 = run_episode(env, make_method("rtv3", limits, policy=policy), make_user(args.user, args.user_seed, pauses=args.pauses),
+    rtv3 = run_episode(env, make_method("rtv3", limits, policy=policy),
+                       make_user(args.user, args.user_seed, pauses=args.pauses),
                        max_steps=args.max_steps, record_frames=can_render, seed=args.seed, options=options)
     goal_px = _goal_pixels(env) if can_render else None
     direct = run_episode(env, make_method("direct", limits), make_user(args.user, args.user_seed, pauses=args.pauses),
@@ -254,12 +258,14 @@ def run(args: argparse.Namespace) -> int:
         import imageio
 
         try:
-            imageio.mimsave(video, _annotate(rtv3.frames, rtv3.diagnostics, "RT-V3", goal_px), fps=20, macro_block_size=1)
+            imageio.mimsave(video, _annotate(rtv3.frames, rtv3.diagnostics, "RT-V3", goal_px), fps=20,
+                            macro_block_size=1)
             print(f"video -> {video}")
         except Exception as err:  # noqa: BLE001  (no ffmpeg writer: keep the plot)
             print(f"note: video not written ({type(err).__name__}: {err})")
     plot = args.output / "demo.png"
-    title = f"RT-V3 shared control, scene {args.seed}, target grasp {target}, user '{args.user}'{_pause_text(args.pauses)}"
+    title = (f"RT-V3 shared control, scene {args.seed}, target grasp {target}, "
+             f"user '{args.user}'{_pause_text(args.pauses)}")
     plot_demo(plot, rtv3, direct, title, threshold)
     print(f"plot  -> {plot}")
 

@@ -56,7 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     plan.add_argument("--policy.path", dest="policy_path", type=Path, required=True, help="RT-V3 checkpoint folder")
     plan.add_argument("--scenes", type=int, default=20, help="number of scenes")
     plan.add_argument("--seed", type=int, default=9,
-                      help="scene i uses seed SEED*100000 + i (rtv3 generate's numbering): pick one no training data used")
+                      help="scene i uses seed SEED*100000 + i (rtv3 generate's numbering): "
+                           "pick one no training data used")
     plan.add_argument("--max-grasps-per-scene", type=int, default=2,
                       help="target grasps per scene (seeded random subset; the paper uses 2; 0 = all)")
     plan.add_argument("--context", default="target", choices=["target", "all"],

@@ -28,7 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="scene point cloud from the depth camera (rendered once per scene) or mesh samples")
     parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")
     parser.add_argument("--end-at", default="pregrasp", choices=["pregrasp", "grasp"],
-                        help="demonstrations end at the pre-grasp (paper) or go on along the 5 cm approach to the grasp")
+                        help="demonstrations end at the pre-grasp (paper) "
+                             "or go on along the 5 cm approach to the grasp")
     parser.add_argument("--export-only", action="store_true",
                         help="only (re)build the LeRobot dataset from the episodes finished so far")
 
@@ -87,9 +88,11 @@ def _init_worker(args_dict: dict) -> None:
         reconfiguration_freq=0,
         max_episode_steps=10_000,
     )
-    _WORKER["recorder"] = DemonstrationRecorder(env, PandaPlanner, plan_timeout=args_dict["plan_timeout"], end_at=args_dict["end_at"])
+    _WORKER["recorder"] = DemonstrationRecorder(env, PandaPlanner, plan_timeout=args_dict["plan_timeout"],
+                                                end_at=args_dict["end_at"])
     _WORKER["args"] = args_dict
-    _WORKER["staging"] = StagingArea(Path(args_dict["output"]))  # appends attempts (the run's process guarded the settings)
+    # appends attempts (the run's process guarded the settings)
+    _WORKER["staging"] = StagingArea(Path(args_dict["output"]))
 
 
 def _run_scene(job: tuple[int, list[str]]) -> dict:
@@ -121,7 +124,8 @@ def _run_scene(job: tuple[int, list[str]]) -> dict:
             staging.log_attempt(scene_seed, g, "success", len(result.state))
             outcomes["success"] += 1
             frames += len(result.state)
-    return dict(scene=scene_seed, grasps=len(grasps), outcomes=dict(outcomes), frames=frames, seconds=time.perf_counter() - start)
+    return dict(scene=scene_seed, grasps=len(grasps), outcomes=dict(outcomes), frames=frames,
+                seconds=time.perf_counter() - start)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -40,7 +40,8 @@ def run(args: argparse.Namespace) -> int:
 
     fig = plt.figure(figsize=(13, 5.5))
     ax = fig.add_subplot(1, 2, 1, projection="3d")
-    plot_point_cloud_and_grasps(ax, cloud, grasp_array_to_poses(grasps), grasps[:, 7], target, trajectory=state[:, F.EE_POS])
+    plot_point_cloud_and_grasps(ax, cloud, grasp_array_to_poses(grasps), grasps[:, 7], target,
+                                trajectory=state[:, F.EE_POS])
     ax.set_title(f"episode {args.episode}: {first['task']}")
     ax2 = fig.add_subplot(2, 2, 2)
     t = np.arange(len(action)) / F.FPS

@@ -98,7 +98,8 @@ def describe_grasp(object_name: str, grasp_pose: np.ndarray) -> str:
     else:
         # The robot stands at -x: +x approach comes from the robot's side ("front").
         horizontal = approach[:2] / max(np.linalg.norm(approach[:2]), 1e-9)
-        sides = {"the front": np.array([1.0, 0.0]), "the back": np.array([-1.0, 0.0]), "the right": np.array([0.0, 1.0]), "the left": np.array([0.0, -1.0])}
+        sides = {"the front": np.array([1.0, 0.0]), "the back": np.array([-1.0, 0.0]),
+                 "the right": np.array([0.0, 1.0]), "the left": np.array([0.0, -1.0])}
         side = max(sides, key=lambda k: float(sides[k] @ horizontal))
     return f"grasp the {object_name} from {side}"
 
@@ -170,7 +171,8 @@ class DemonstrationRecorder:
         if q_start is None:
             return "no_start_pose"
         # Parallel-jaw symmetry: aim for the twin closer to the start orientation (docs/PAPER_NOTES.md).
-        grasp = canonicalize_symmetric(grasp_set.poses[grasp_index : grasp_index + 1], self.planner.forward_kinematics(q_start))[0]
+        grasp = canonicalize_symmetric(grasp_set.poses[grasp_index : grasp_index + 1],
+                                       self.planner.forward_kinematics(q_start))[0]
         pregrasp = se3.translate_along_z(torch.from_numpy(grasp), -PREGRASP_DISTANCE).numpy()
         transit = self.planner.plan_to_pose(q_start, pregrasp, timeout=self.plan_timeout, seed=seed)
         if not transit.success:
@@ -236,4 +238,5 @@ class DemonstrationRecorder:
         )
 
 
-__all__ = ["DemonstrationRecorder", "END_AT", "Episode", "FAILURE_REASONS", "HOLD_STEPS", "describe_grasp", "random_start_configuration"]
+__all__ = ["DemonstrationRecorder", "END_AT", "Episode", "FAILURE_REASONS", "HOLD_STEPS", "describe_grasp",
+           "random_start_configuration"]

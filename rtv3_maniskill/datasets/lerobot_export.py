@@ -59,7 +59,8 @@ def dataset_features(num_points: int, max_grasps: int) -> dict:
     flat = features.stored_shape
     return {
         features.STATE: {"dtype": "float32", "shape": (features.STATE_DIM,), "names": state_names},
-        features.STATE_HISTORY: {"dtype": "float32", "shape": flat(features.STATE_HISTORY, features.HISTORY_STEPS), "names": None},
+        features.STATE_HISTORY: {"dtype": "float32", "shape": flat(features.STATE_HISTORY, features.HISTORY_STEPS),
+                                 "names": None},
         features.POINT_CLOUD: {"dtype": "float32", "shape": flat(features.POINT_CLOUD, num_points), "names": None},
         features.POINT_CLOUD_MASK: {"dtype": "float32", "shape": (num_points,), "names": ["point"]},
         features.GRASPS: {"dtype": "float32", "shape": flat(features.GRASPS, max_grasps), "names": None},
@@ -79,7 +80,8 @@ def state_histories(states: np.ndarray, steps: int = features.HISTORY_STEPS) -> 
     return np.stack([padded[t : t + steps] for t in range(len(states))]).astype(np.float32)
 
 
-def end_at_pregrasp(state: np.ndarray, action: np.ndarray, pregrasp_step: int, hold_steps: int = HOLD_STEPS) -> tuple[np.ndarray, np.ndarray]:
+def end_at_pregrasp(state: np.ndarray, action: np.ndarray, pregrasp_step: int,
+                    hold_steps: int = HOLD_STEPS) -> tuple[np.ndarray, np.ndarray]:
     """Cut a staged episode that goes on to the grasp at its pre-grasp and pad it with
     ``hold_steps`` copies of the pre-grasp state at rest (zero twist and joint velocities;
     docs/PAPER_NOTES.md: demonstrations are padded with copies of the final pose).
@@ -125,10 +127,12 @@ class StagingArea:
         self.attempts_file = self.dir / ATTEMPTS
         if settings is not None and not (self.root / SETTINGS).exists() and not self.dir.exists():
             if (self.root / "meta").exists() or (self.root / "data").exists():
-                raise ValueError(f"{self.root} already holds a dataset that rtv3 generate did not create; choose another --output folder")
+                raise ValueError(f"{self.root} already holds a dataset that rtv3 generate did not create; "
+                                 "choose another --output folder")
         self.dir.mkdir(parents=True, exist_ok=True)
         self._import_legacy_attempts()
-        self.records = RecordStore(self.attempts_file, ATTEMPT_FIELDS, key=("key",), settings=settings, settings_path=self.root / SETTINGS)
+        self.records = RecordStore(self.attempts_file, ATTEMPT_FIELDS, key=("key",), settings=settings,
+                                   settings_path=self.root / SETTINGS)
         if settings is not None:
             recorded = self.attempts()
             for path in self.episode_files():
@@ -189,7 +193,8 @@ class StagingArea:
         os.replace(tmp, self.dir / f"{key}.npz")
 
     def log_attempt(self, scene_seed: int, grasp_index: int, outcome: str, frames: int = 0) -> None:
-        self.records.append(dict(key=self.key(scene_seed, grasp_index), scene=scene_seed, grasp=grasp_index, outcome=outcome, frames=frames))
+        self.records.append(dict(key=self.key(scene_seed, grasp_index), scene=scene_seed, grasp=grasp_index,
+                                 outcome=outcome, frames=frames))
 
     def episode_files(self) -> list[Path]:
         return sorted(p for p in self.dir.glob("scene*_grasp*.npz") if not p.name.endswith(".tmp.npz"))
@@ -230,7 +235,8 @@ class StagingArea:
                 store.append({k: record[k] for k in ATTEMPT_FIELDS})
 
 
-def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progress: bool = True, end_at: str = "pregrasp") -> int:
+def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progress: bool = True,
+                           end_at: str = "pregrasp") -> int:
     """(Re)build the LeRobot dataset in ``root`` from the staged episodes; returns frames written.
 
     With ``end_at="pregrasp"`` episodes staged with the approach to the grasp (recorded with
@@ -252,7 +258,8 @@ def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progres
     if tmp_root.exists():
         shutil.rmtree(tmp_root)
     dataset = LeRobotDataset.create(
-        REPO_ID, fps=features.FPS, features=dataset_features(num_points, max_grasps), root=tmp_root, robot_type="panda", use_videos=False
+        REPO_ID, fps=features.FPS, features=dataset_features(num_points, max_grasps), root=tmp_root, robot_type="panda",
+        use_videos=False,
     )
     frames = 0
     for path in tqdm(files, desc="export to LeRobot", disable=not progress, unit="episode"):

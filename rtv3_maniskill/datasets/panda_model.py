@@ -103,7 +103,8 @@ class PandaKinematics:
         self.urdf_path = asset_dir / "panda_v2.urdf"
         self.srdf_path = asset_dir / "panda_v2.srdf"
         full = pin.buildModelFromUrdf(str(self.urdf_path))
-        geom = pin.buildGeomFromUrdf(full, str(self.urdf_path), pin.GeometryType.COLLISION, package_dirs=[str(asset_dir)])
+        geom = pin.buildGeomFromUrdf(full, str(self.urdf_path), pin.GeometryType.COLLISION,
+                                     package_dirs=[str(asset_dir)])
         # Placing the robot: append it to an empty world model at the base pose.
         base = pin.SE3(np.eye(3), np.asarray(base_position, dtype=np.float64))
         full, geom = pin.appendModel(pin.Model(), full, pin.GeometryModel(), geom, 0, base)
@@ -315,7 +316,8 @@ class PandaCollisionWorld:
                 for k, shape in enumerate(obj.shapes):
                     coal_geom, fix = _shape_to_coal(shape)
                     placement = pose @ np.asarray(shape.local_pose, dtype=np.float64) @ fix
-                    go = pin.GeometryObject(f"obj{idx}_{obj.name}_{k}", 0, 0, pin.SE3(placement[:3, :3], placement[:3, 3]), coal_geom)
+                    go = pin.GeometryObject(f"obj{idx}_{obj.name}_{k}", 0, 0,
+                                            pin.SE3(placement[:3, :3], placement[:3, 3]), coal_geom)
                     ids.append(geom.addGeometryObject(go))
                 self.object_geometry_ids[idx] = ids
         link0 = [i for i in self.robot_geometry_ids if geom.geometryObjects[i].name.startswith("panda_link0")]
@@ -338,7 +340,8 @@ class PandaCollisionWorld:
         self.set_margins(self.margins)
         # AABB-tree broad phase (pinocchio inflates the boxes by each pair's margin and
         # honours deactivated pairs); 5x faster than checking every pair in clutter.
-        self._broadphase = pin.BroadPhaseManager_DynamicAABBTreeCollisionManager(self.model, self.geometry, self.geometry_data)
+        self._broadphase = pin.BroadPhaseManager_DynamicAABBTreeCollisionManager(self.model, self.geometry,
+                                                                                 self.geometry_data)
         self.num_objects = len(scene.objects) if scene is not None else 0
         self._ignored: frozenset[int] = frozenset()
 
@@ -355,7 +358,8 @@ class PandaCollisionWorld:
             return
         unknown = ignore - set(self.pairs_by_object)
         if unknown:
-            raise ValueError(f"ignore_objects has unknown object indices {sorted(unknown)} (scene has {self.num_objects}, table = {TABLE_OBJECT_INDEX})")
+            raise ValueError(f"ignore_objects has unknown object indices {sorted(unknown)} "
+                             f"(scene has {self.num_objects}, table = {TABLE_OBJECT_INDEX})")
         for obj_idx, pair_ids in self.pairs_by_object.items():
             for p in pair_ids:
                 if obj_idx in ignore:
@@ -391,7 +395,8 @@ class PandaCollisionWorld:
         out = []
         for k, cp in enumerate(self.geometry.collisionPairs):
             if self.geometry_data.activeCollisionPairs[k] and self.geometry_data.collisionResults[k].isCollision():
-                out.append((self.geometry.geometryObjects[cp.first].name, self.geometry.geometryObjects[cp.second].name))
+                out.append((self.geometry.geometryObjects[cp.first].name,
+                            self.geometry.geometryObjects[cp.second].name))
         return out
 
     def min_distance(self, q, ignore_objects: Iterable[int] = ()) -> float:

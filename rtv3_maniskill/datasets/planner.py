@@ -54,7 +54,8 @@ from rtv3_maniskill.datasets.panda_model import (
 from rtv3_maniskill.tasks.scene_geometry import SceneGeometry
 
 FailureReason = Literal["ik_failed", "start_in_collision", "goal_in_collision", "planning_failed", "timeout"]
-FAILURE_REASONS: tuple[str, ...] = ("ik_failed", "start_in_collision", "goal_in_collision", "planning_failed", "timeout")
+FAILURE_REASONS: tuple[str, ...] = ("ik_failed", "start_in_collision", "goal_in_collision", "planning_failed",
+                                    "timeout")
 
 ou.setLogLevel(ou.LogLevel.LOG_WARN)
 
@@ -283,7 +284,8 @@ class PandaPlanner:
         """Smallest robot-obstacle distance (m) at ``q (7,)``, table included."""
         return self.world.min_distance(q, ignore_objects)
 
-    def motion_collision_free(self, qs: np.ndarray, ignore_objects: Iterable[int] = (), resolution: float | None = None) -> bool:
+    def motion_collision_free(self, qs: np.ndarray, ignore_objects: Iterable[int] = (),
+                              resolution: float | None = None) -> bool:
         """Whether the piecewise-linear joint path through ``qs (K, 7)`` is collision-free.
 
         Every segment is checked at ``resolution`` rad (L-inf; default
@@ -398,7 +400,8 @@ class PandaPlanner:
             pairs = self.world.colliding_pairs(q_start, ignore)
             limits = "" if self.kin.within_limits(q_start, 1e-6) else " (outside joint limits)"
             return fail("start_in_collision", f"start configuration in collision{limits}: {pairs[:4]}")
-        ik = self.solve_ik_solutions(target, q_start, num_solutions=self.config.num_goal_solutions, ignore_objects=ignore, seed=seed)
+        ik = self.solve_ik_solutions(target, q_start, num_solutions=self.config.num_goal_solutions,
+                                     ignore_objects=ignore, seed=seed)
         if not ik.solutions:
             if ik.num_in_collision:
                 return fail("goal_in_collision", f"all {ik.num_in_collision} IK solutions collide")
@@ -548,7 +551,8 @@ class PandaPlanner:
                 return PlanResult(False, failure_reason=reason, message=message, planning_time=time.perf_counter() - t0)
 
             if check_collision and not self.world.is_collision_free(q_start, ignore):
-                return fail("start_in_collision", f"start configuration in collision: {self.world.colliding_pairs(q_start, ignore)[:4]}")
+                return fail("start_in_collision",
+                            f"start configuration in collision: {self.world.colliding_pairs(q_start, ignore)[:4]}")
             start_pose = self.kin.forward_kinematics(q_start)
             xi = se3.se3_log(se3.relative_transform(torch.from_numpy(start_pose), torch.from_numpy(target))).numpy()
             length, angle = float(np.linalg.norm(xi[:3])), float(np.linalg.norm(xi[3:]))
@@ -564,22 +568,26 @@ class PandaPlanner:
             qds = np.zeros((n + 1, DOF))
             qs[0] = q_start
             for k in range(1, n + 1):
-                q, ok = self.kin.ik_from_seed(poses[k], qs[k - 1], max_iters=100, pos_tol=cfg.ik_pos_tol, rot_tol=cfg.ik_rot_tol)
+                q, ok = self.kin.ik_from_seed(poses[k], qs[k - 1], max_iters=100, pos_tol=cfg.ik_pos_tol,
+                                              rot_tol=cfg.ik_rot_tol)
                 if not ok:
                     return fail("ik_failed", f"IK failed at straight-line sample {k}/{n}")
                 if np.abs(q - qs[k - 1]).max() > cfg.max_joint_jump:
-                    return fail("planning_failed", f"joint jump of {np.abs(q - qs[k - 1]).max():.3f} rad at sample {k}/{n}")
+                    return fail("planning_failed",
+                                f"joint jump of {np.abs(q - qs[k - 1]).max():.3f} rad at sample {k}/{n}")
                 qs[k] = q
             for k in range(1, n):
                 # Body twist along the line is xi * sigma_dot; joint rates from the Jacobian.
                 qds[k] = np.linalg.lstsq(self.kin.tcp_jacobian(qs[k]), xi * sigma_dot[k], rcond=None)[0]
             if check_collision:
                 if not self.world.is_collision_free(qs[-1], ignore):
-                    return fail("goal_in_collision", f"target configuration in collision: {self.world.colliding_pairs(qs[-1], ignore)[:4]}")
+                    return fail("goal_in_collision",
+                                f"target configuration in collision: {self.world.colliding_pairs(qs[-1], ignore)[:4]}")
                 if not self.motion_collision_free(qs, ignore):
                     return fail("planning_failed", "straight-line motion collides")
             traj = JointTrajectory(q=qs, qd=qds, t=times)
-            return PlanResult(True, trajectory=traj, goal_q=qs[-1].copy(), waypoints=qs[[0, -1]].copy(), planning_time=time.perf_counter() - t0)
+            return PlanResult(True, trajectory=traj, goal_q=qs[-1].copy(), waypoints=qs[[0, -1]].copy(),
+                              planning_time=time.perf_counter() - t0)
         finally:
             self._use_margins(cfg.margins)
 
