@@ -27,16 +27,17 @@ STATE = "observation.state"
 ee body twist (6), arm joint positions (7, rad), arm joint velocities (7, rad/s)]."""
 STATE_DIM = 27
 STATE_HISTORY = "observation.state_history"
-"""``(T, 27)`` (stored flat, see :data:`STORED_FLAT`) the last T states (oldest first, the current one last), the first state repeated
-before the episode start. Stored by the dataset so that training reads one row per sample
+"""``(T, 27)`` (stored flat, see :data:`STORED_FLAT`) the last T states (oldest first, the current one last),
+the first state repeated before the episode start. Stored by the dataset so that training reads one row per sample
 instead of a T-frame window of every ``observation.*`` key (point clouds included)."""
 POINT_CLOUD = "observation.point_cloud"
-"""``(N, 6)`` (stored flat, see :data:`STORED_FLAT`) xyz (world, m) + rgb in [0, 1]; rows where the mask is 0 are zeros."""
+"""``(N, 6)`` (stored flat, see :data:`STORED_FLAT`) xyz (world, m) + rgb in [0, 1];
+rows where the mask is 0 are zeros."""
 POINT_CLOUD_MASK = "observation.point_cloud_mask"
 """``(N,)`` 1.0 for a real point, 0.0 for padding."""
 GRASPS = "observation.grasps"
-"""``(M, 9)`` (stored flat, see :data:`STORED_FLAT`) grasp candidates: TCP position (3, world, m), quaternion wxyz (4, world),
-gripper width (1, m), score (1, in [0, 1]). Rows where the mask is 0 are zeros."""
+"""``(M, 9)`` (stored flat, see :data:`STORED_FLAT`) grasp candidates: TCP position (3, world, m),
+quaternion wxyz (4, world), gripper width (1, m), score (1, in [0, 1]). Rows where the mask is 0 are zeros."""
 GRASP_DIM = 9
 GRASPS_MASK = "observation.grasps_mask"
 """``(M,)`` 1.0 for a real candidate, 0.0 for padding."""

@@ -56,7 +56,8 @@ class GraspClutterLeRobotEnv(gym.Env):
 
     def _convert(self, obs: dict) -> dict[str, np.ndarray]:
         inputs = features.observation_from_env(obs)
-        packed = features.pack_context(inputs[features.POINT_CLOUD], inputs[features.POINT_CLOUD_MASK], inputs[features.GRASPS], inputs[features.GRASPS_MASK])
+        packed = features.pack_context(inputs[features.POINT_CLOUD], inputs[features.POINT_CLOUD_MASK],
+                                       inputs[features.GRASPS], inputs[features.GRASPS_MASK])
         return {"agent_pos": inputs[features.STATE][0].cpu().numpy(), "environment_state": packed[0].cpu().numpy()}
 
     @staticmethod
@@ -79,7 +80,8 @@ class GraspClutterLeRobotEnv(gym.Env):
         full = torch.from_numpy(np.concatenate([action, [0.04]]).astype(np.float32))[None]
         obs, reward, terminated, truncated, info = self._env.step(full)
         out_info = self._info(info)
-        return self._convert(obs), float(reward[0]), bool(terminated[0]) or out_info["is_success"], bool(truncated[0]), out_info
+        return (self._convert(obs), float(reward[0]), bool(terminated[0]) or out_info["is_success"],
+                bool(truncated[0]), out_info)
 
     def render(self):
         return self._env.render()[0].cpu().numpy()

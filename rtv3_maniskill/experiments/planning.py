@@ -146,7 +146,8 @@ class PlanningConfig:
     context: str = "target"
     point_cloud: str = "rendered"
     """``"rendered"``: the depth camera's cloud captured once per scene (``rtv3 generate``'s default);
-    ``"mesh"``: sampled from the object meshes (``rtv3 generate --context mesh``). Use what the policy was trained on."""
+    ``"mesh"``: sampled from the object meshes (``rtv3 generate --context mesh``).
+    Use what the policy was trained on."""
     scene_type: str = "mixed"
     max_steps: int = PLANNING_MAX_STEPS
     threshold: float = PLANNING_SUCCESS_THRESHOLD
@@ -282,7 +283,8 @@ class PlanningBenchmark:
                 raise ValueError(
                     "--point-cloud rendered: the scene cannot render, so there is no depth-camera point cloud; "
                     "use --point-cloud mesh "
-                    "(only if the policy was trained on mesh clouds) or set up a Vulkan driver (scripts/setup.sh installs a software one)"
+                    "(only if the policy was trained on mesh clouds) or set up a Vulkan driver "
+                    "(scripts/setup.sh installs a software one)"
                 )
             self._cloud = self.base.capture_point_cloud()
         return torch.nonzero(self.base.grasps_mask[0] > 0.5).flatten().tolist()
@@ -339,7 +341,9 @@ class PlanningBenchmark:
             return row
         obs, _ = self.env.reset(options=dict(reconfigure=False, init_qpos=q_start, target_grasp_index=grasp))
         self.policy.reset()
-        row["start_distance"] = f"{float(planning_distance(self.base.tcp_pose_matrix[0].double(), context_poses).min()):.4f}"
+        row["start_distance"] = (
+            f"{float(planning_distance(self.base.tcp_pose_matrix[0].double(), context_poses).min()):.4f}"
+        )
         outcome, steps, min_distance, distances = "timeout", self.config.max_steps, math.inf, None
         for step in range(1, self.config.max_steps + 1):
             twist = self.policy.select_action(self._observation(obs, grasp))
@@ -424,7 +428,8 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
         scene_seed_range=[config.seed * SCENE_SEED_STRIDE, config.seed * SCENE_SEED_STRIDE + config.scenes - 1],
         max_grasps_per_scene=config.max_grasps_per_scene,
         settings=config.fingerprint(),
-        success_rule=f"pose distance (rot weight 0.3/pi) to a context grasp's pre-grasp or its twin < {config.threshold}",
+        success_rule=("pose distance (rot weight 0.3/pi) to a context grasp's pre-grasp "
+                      f"or its twin < {config.threshold}"),
         paper_table1_full_rtv3=PAPER_TABLE1_FULL,
     )
     (output / "planning_summary.json").write_text(json.dumps(summary, indent=2))

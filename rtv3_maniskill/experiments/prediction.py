@@ -90,7 +90,8 @@ def mode_metrics(gt_poses: torch.Tensor, mode_poses: torch.Tensor, log_prior: to
     """
     if mode_poses.ndim != 5 or mode_poses.shape[0] != gt_poses.shape[0] or mode_poses.shape[2:] != gt_poses.shape[1:]:
         raise ValueError(
-            f"mode_poses must be (B, K, H, 4, 4) matching gt_poses {tuple(gt_poses.shape)}, got {tuple(mode_poses.shape)}"
+            f"mode_poses must be (B, K, H, 4, 4) matching gt_poses {tuple(gt_poses.shape)}, "
+            f"got {tuple(mode_poses.shape)}"
         )
     if tuple(log_prior.shape) != tuple(mode_poses.shape[:2]):
         raise ValueError(f"log_prior must be (B, K) = {tuple(mode_poses.shape[:2])}, got {tuple(log_prior.shape)}")
@@ -165,7 +166,8 @@ def select_scene_seeds(
     """
     rules = sum([seed_range is not None, last_fraction is not None, bool(all_scenes)])
     if rules != 1:
-        raise ValueError("choose the held-out episodes with exactly one of: scene-seed range, last fraction, all scenes")
+        raise ValueError("choose the held-out episodes with exactly one of: "
+                         "scene-seed range, last fraction, all scenes")
     seeds = sorted({int(s) for s in available})
     if seed_range is not None:
         low, high = seed_range
@@ -225,7 +227,8 @@ def load_episodes(
                 episode_index=int(ep),
                 scene_seed=scene,
                 states=states[rows],
-                point_cloud=features.unflatten(features.POINT_CLOUD, np.asarray(context[features.POINT_CLOUD], dtype=np.float32)),
+                point_cloud=features.unflatten(features.POINT_CLOUD,
+                                               np.asarray(context[features.POINT_CLOUD], dtype=np.float32)),
                 point_cloud_mask=np.asarray(context[features.POINT_CLOUD_MASK], dtype=np.float32),
                 grasps=features.unflatten(features.GRASPS, np.asarray(context[features.GRASPS], dtype=np.float32)),
                 grasps_mask=np.asarray(context[features.GRASPS_MASK], dtype=np.float32),
@@ -241,7 +244,8 @@ def load_episodes(
 
 
 def make_windows(episodes: Sequence[EpisodeData], history: int, horizon: int) -> list[tuple[int, int]]:
-    """Every full window as ``(episode position in the list, current step)``: ``history - 1 <= t <= S - 1 - horizon``."""
+    """Every full window as ``(episode position in the list, current step)``:
+    ``history - 1 <= t <= S - 1 - horizon``."""
     if history < 1 or horizon < 1:
         raise ValueError(f"history and horizon must be >= 1, got {history}, {horizon}")
     return [(i, t) for i, ep in enumerate(episodes) for t in range(history - 1, len(ep.states) - horizon)]
@@ -282,7 +286,8 @@ CALIBRATION_ALPHA = 0.85
 """The shared controller's OOD-gate quantile (docs/PAPER_NOTES.md), used to check the prior's calibration."""
 
 
-def step0_calibration(mixture: Any, true_translation: torch.Tensor, alpha: float = CALIBRATION_ALPHA) -> dict[str, torch.Tensor]:
+def step0_calibration(mixture: Any, true_translation: torch.Tensor,
+                      alpha: float = CALIBRATION_ALPHA) -> dict[str, torch.Tensor]:
     """How well the step-0 translation Gaussians cover the expert's next translation velocity.
 
     Args:
@@ -338,7 +343,8 @@ def evaluate_windows(
     baseline_sums = {f"{b}_{m}": 0.0 for b in BASELINES for m in ("ade", "fde")}
     per_step = torch.zeros(horizon, dtype=torch.float64)
     calibration: dict[str, list[torch.Tensor]] = {}
-    for start in tqdm(range(0, len(windows), batch_size), desc="prediction windows", unit="batch", disable=not progress):
+    for start in tqdm(range(0, len(windows), batch_size), desc="prediction windows", unit="batch",
+                      disable=not progress):
         chunk = windows[start : start + batch_size]
         batch, current, gt = window_batch(episodes, chunk, history, horizon)
         twists, log_prior = policy.predict_modes(batch, update_history=False)  # (B, K, H, 6), (B, K)

@@ -108,11 +108,16 @@ def read_context(batch: dict[str, torch.Tensor], num_points: int, max_grasps: in
         # A dataset stores the point cloud and the grasps flat (features.STORED_FLAT): unflatten.
         pc = _as_tensor(features.POINT_CLOUD, batch[features.POINT_CLOUD])
         pc = _single_frame(features.POINT_CLOUD, features.unflatten(features.POINT_CLOUD, pc), 2, (None, 6))
-        pc_mask = _single_frame(features.POINT_CLOUD_MASK, _as_tensor(features.POINT_CLOUD_MASK, batch[features.POINT_CLOUD_MASK]), 1, (pc.shape[1],))
+        pc_mask = _single_frame(features.POINT_CLOUD_MASK,
+                                _as_tensor(features.POINT_CLOUD_MASK, batch[features.POINT_CLOUD_MASK]), 1,
+                                (pc.shape[1],))
         grasps = _as_tensor(features.GRASPS, batch[features.GRASPS])
-        grasps = _single_frame(features.GRASPS, features.unflatten(features.GRASPS, grasps), 2, (None, features.GRASP_DIM))
-        g_mask = _single_frame(features.GRASPS_MASK, _as_tensor(features.GRASPS_MASK, batch[features.GRASPS_MASK]), 1, (grasps.shape[1],))
-        for key, value in ((features.POINT_CLOUD, pc), (features.POINT_CLOUD_MASK, pc_mask), (features.GRASPS, grasps), (features.GRASPS_MASK, g_mask)):
+        grasps = _single_frame(features.GRASPS, features.unflatten(features.GRASPS, grasps), 2,
+                               (None, features.GRASP_DIM))
+        g_mask = _single_frame(features.GRASPS_MASK, _as_tensor(features.GRASPS_MASK, batch[features.GRASPS_MASK]), 1,
+                               (grasps.shape[1],))
+        for key, value in ((features.POINT_CLOUD, pc), (features.POINT_CLOUD_MASK, pc_mask), (features.GRASPS, grasps),
+                           (features.GRASPS_MASK, g_mask)):
             check_finite(key, value)
         sizes = {pc.shape[0], pc_mask.shape[0], grasps.shape[0], g_mask.shape[0]}
         if len(sizes) != 1:
@@ -129,7 +134,8 @@ def read_context(batch: dict[str, torch.Tensor], num_points: int, max_grasps: in
         grasps, g_mask = unpacked[features.GRASPS], unpacked[features.GRASPS_MASK]
     else:
         raise KeyError(
-            f"batch has no scene context: give '{features.POINT_CLOUD}', '{features.POINT_CLOUD_MASK}', '{features.GRASPS}', "
+            f"batch has no scene context: give '{features.POINT_CLOUD}', '{features.POINT_CLOUD_MASK}', "
+            f"'{features.GRASPS}', "
             f"'{features.GRASPS_MASK}' or the packed '{ENV_STATE}'"
         )
     return SceneContext(pc, pc_mask > 0.5, grasps, g_mask > 0.5)
@@ -137,7 +143,8 @@ def read_context(batch: dict[str, torch.Tensor], num_points: int, max_grasps: in
 
 def read_states(batch: dict[str, torch.Tensor]) -> torch.Tensor:
     """The state history, checked: ``observation.state_history (B, T, 27)`` when the batch has it
-    (datasets store it, flat ``(B, T * 27)``), else ``observation.state`` as given: ``(B, T, 27)``, ``(B, 27)`` or ``(27,)``."""
+    (datasets store it, flat ``(B, T * 27)``), else ``observation.state`` as given:
+    ``(B, T, 27)``, ``(B, 27)`` or ``(27,)``."""
     key = features.STATE_HISTORY if features.STATE_HISTORY in batch else features.STATE
     if key not in batch:
         raise KeyError(f"batch lacks '{features.STATE}'")
@@ -174,7 +181,8 @@ def read_actions(batch: dict[str, torch.Tensor], batch_size: int, horizon: int) 
     return actions, ~pad.bool()
 
 
-def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int = 10, sizes: str = "uniform") -> SceneContext:
+def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int = 10,
+                     sizes: str = "uniform") -> SceneContext:
     """Training augmentation (docs/PAPER_NOTES.md): keep a random subset of 10..all valid grasps, always the target.
 
     Args:

@@ -78,8 +78,8 @@ class RTV3Config(PreTrainedConfig):
             averaged) between the embedding and the first stage. 1 (default): the first stage attends over one
             point per 15 mm voxel (a scan voxelised at 7.5 mm has ~3x fewer), which takes ~30 % off
             ``select_action`` on CPU with all N = 2048 slots filled at no measured cost in prediction or planning
-            (README); 0: the authors' layout (docs/PAPER_NOTES.md), the first stage attends over every input point. Adds no
-            parameters, so weights move between the two.
+            (README); 0: the authors' layout (docs/PAPER_NOTES.md), the first stage attends over every input point.
+            Adds no parameters, so weights move between the two.
         point_decoder_heads / point_decoder_layers: decoder queried by h0_d (4 heads, 1 layer).
         use_grasp_encoder / use_point_encoder: ablation switches (paper Table I).
 
@@ -269,7 +269,8 @@ class RTV3Config(PreTrainedConfig):
         if any(d < 1 for d in self.point_depths):
             raise ValueError(f"point_depths must be >= 1, got {self.point_depths}")
         if not isinstance(self.point_stem_poolings, int) or self.point_stem_poolings < 0:
-            raise ValueError(f"RTV3Config.point_stem_poolings must be an integer >= 0, got {self.point_stem_poolings!r}")
+            raise ValueError("RTV3Config.point_stem_poolings must be an integer >= 0, "
+                             f"got {self.point_stem_poolings!r}")
         if not self.point_grid_size > 0:
             raise ValueError(f"point_grid_size must be > 0 (metres), got {self.point_grid_size}")
         if self.latent_training not in LATENT_TRAINING_MODES:
@@ -290,7 +291,8 @@ class RTV3Config(PreTrainedConfig):
                 raise ValueError(f"RTV3Config.{name} must be >= 0, got {getattr(self, name)}")
         if self.rotation_conditioning not in ROTATION_CONDITIONING_MODES:
             raise ValueError(
-                f"rotation_conditioning must be one of {ROTATION_CONDITIONING_MODES}, got {self.rotation_conditioning!r}"
+                f"rotation_conditioning must be one of {ROTATION_CONDITIONING_MODES}, "
+                f"got {self.rotation_conditioning!r}"
             )
         if not 0 < self.z_logit_clip_start <= self.z_logit_clip_final:
             raise ValueError("need 0 < z_logit_clip_start <= z_logit_clip_final")

@@ -134,7 +134,8 @@ class PointCloudEncoder(nn.Module):
         self.decoder = QueryDecoder(query_dim, dim, decoder_heads, decoder_layers, 4 * dim, dropout)
         self.out_dim = dim
 
-    def forward(self, xyz: torch.Tensor, feat: torch.Tensor, valid: torch.Tensor, h_dynamics: torch.Tensor) -> torch.Tensor:
+    def forward(self, xyz: torch.Tensor, feat: torch.Tensor, valid: torch.Tensor,
+                h_dynamics: torch.Tensor) -> torch.Tensor:
         """``xyz (B, N, 3)`` EE frame (m), ``feat (B, N, F)``, ``valid (B, N)`` -> ``h_pcl (B, C)``."""
         tokens, token_valid = self.backbone(xyz, feat, valid)
         return self.decoder(tokens, token_valid, h_dynamics)

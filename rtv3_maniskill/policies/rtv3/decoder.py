@@ -110,7 +110,8 @@ class TrajectoryDecoder(nn.Module):
         inputs_prev = torch.cat([prev_action[:, None], actions[:, :-1]], 1)
         static = start.static_input[:, None].expand(-1, horizon, -1)
         h, _ = self.gru(torch.cat([static, inputs_prev], -1), start.state)  # (R, H, hidden)
-        return self._state_log_likelihood(h, start.z[:, None].expand(-1, horizon, -1), actions, clamp, rotation_conditioning)
+        return self._state_log_likelihood(h, start.z[:, None].expand(-1, horizon, -1), actions, clamp,
+                                          rotation_conditioning)
 
     def step(self, start: DecoderStart, prev_action: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """One GRU step: ``(R, 6)`` a_{t-1}, ``(1, R, hidden)`` h_{t-1} -> ``(1, R, hidden)`` h_t."""

@@ -98,7 +98,8 @@ class RTV3Model(nn.Module):
     def clip_and_beta(self, step: int) -> tuple[float, float]:
         """Annealed logit clip and KL weight beta at training step ``step`` (sigmoid schedules)."""
         c = self.config
-        clip = sigmoid_anneal(step, c.z_logit_clip_start, c.z_logit_clip_final, c.z_logit_clip_crossover, c.z_logit_clip_divisor)
+        clip = sigmoid_anneal(step, c.z_logit_clip_start, c.z_logit_clip_final, c.z_logit_clip_crossover,
+                              c.z_logit_clip_divisor)
         beta = sigmoid_anneal(step, c.kl_weight_start, c.kl_weight, c.kl_crossover, c.kl_sigmoid_divisor)
         return clip, beta
 
@@ -138,7 +139,8 @@ class RTV3Model(nn.Module):
             if c.grasp_input_position:
                 feats.append(grasp_relative[..., :3, 3] * c.position_scale)
             feats += [ctx.grasps[..., 7:8] * c.position_scale, ctx.grasps[..., 8:9]]
-            valid = ctx.grasp_mask & (ctx.grasps[..., 8] > c.min_grasp_score) if c.min_grasp_score > 0 else ctx.grasp_mask
+            valid = (ctx.grasp_mask & (ctx.grasps[..., 8] > c.min_grasp_score) if c.min_grasp_score > 0
+                     else ctx.grasp_mask)
             grasp_feat = torch.where(valid[..., None], torch.cat(feats, -1), 0.0)
             parts.append(self.grasp_encoder(grasp_feat, valid, h0_d))  # h_grasp
         return Encoding(h0=torch.cat(parts, -1), prev_action=self._twist_in(x[:, -1, 6:]))
@@ -259,7 +261,8 @@ class RTV3Model(nn.Module):
                 lead = _check_translation(v, batch, k)
                 with torch.no_grad():
                     omega, gamma = joint.rotation_given_translation(v.reshape(*lead, batch * k, 3).to(h))
-                    return omega.view(*lead, batch, k, 3), gamma.expand(*lead, batch * k, 3, 3).reshape(*lead, batch, k, 3, 3)
+                    return (omega.view(*lead, batch, k, 3),
+                            gamma.expand(*lead, batch * k, 3, 3).reshape(*lead, batch, k, 3, 3))
 
         return TwistMixture(
             log_weights=self.maneuver_log_prior(enc, step),

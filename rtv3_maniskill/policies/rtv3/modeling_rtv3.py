@@ -179,7 +179,8 @@ class RTV3Policy(PreTrainedPolicy):
         cast = lambda t: t.to(device=param.device, dtype=param.dtype)  # noqa: E731
         return RTV3Inputs(
             cast(inputs.states),
-            type(ctx)(cast(ctx.point_cloud), ctx.point_mask.to(param.device), cast(ctx.grasps), ctx.grasp_mask.to(param.device)),
+            type(ctx)(cast(ctx.point_cloud), ctx.point_mask.to(param.device), cast(ctx.grasps),
+                      ctx.grasp_mask.to(param.device)),
         )
 
     def _training_inputs(self, batch: dict[str, Tensor]) -> RTV3Inputs:
