@@ -162,3 +162,19 @@ def test_grasp_clutter_with_random_urdfs_is_seeded_and_has_grasps():
         assert runs[0][0] != runs[1][0] or not np.allclose(runs[0][1], runs[1][1])
     finally:
         env.close()
+
+
+def test_benchmark_shared_takes_the_object_source(tmp_path):
+    import argparse
+
+    from rtv3_maniskill.cli.benchmark_shared import add_arguments
+    from rtv3_maniskill.experiments.shared_benchmark import BenchmarkConfig
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert parser.parse_args(["--objects", "random_urdfs"]).objects == "random_urdfs"
+    assert parser.parse_args([]).objects == "procedural"
+    default = BenchmarkConfig(output=tmp_path, methods=["direct"], users=["noisy"])
+    urdfs = BenchmarkConfig(output=tmp_path, methods=["direct"], users=["noisy"], object_source="random_urdfs")
+    assert "object_source" not in default.fingerprint(None), "runs made before the option still resume"
+    assert urdfs.fingerprint(None)["object_source"] == "random_urdfs"

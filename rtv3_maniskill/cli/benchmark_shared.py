@@ -42,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="state_dict mode: use the mesh-sampled scene cloud instead of rendering it once per "
                              "scene from the depth camera (the default, as `rtv3 generate` stores it)")
     parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
+    parser.add_argument("--objects", default="procedural",
+                        help="object source: 'procedural', 'random_urdfs' (pybullet's random objects), "
+                             "'procedural+random_urdfs' or a folder of meshes")
     parser.add_argument("--ho-variant", default="rtv3_authors",
                         choices=["rtv3_authors", "rtv3_authors_public", "javdani2018"],
                         help="HO constants: the RT-V3 paper's translation-only baseline, our reading of the "
@@ -87,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed, goals_per_scene=args.goals_per_scene, max_steps=args.max_steps,
             stop_on_contact=not args.continue_after_contact,
             obs_mode=args.obs_mode, rendered_context=not args.mesh_context, scene_type=args.scene_type,
+            object_source=getattr(args, "objects", "procedural"),
             ho_variant=args.ho_variant, shared_control={
                 key: value for key in ("ood_alpha", "ood_covariance", "ood_dofs", "uncommanded_axes")
                 if (value := getattr(args, key, None)) is not None

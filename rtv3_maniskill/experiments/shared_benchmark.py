@@ -100,6 +100,8 @@ class BenchmarkConfig:
     obs_mode: str = "state_dict"
     rendered_context: bool = False
     scene_type: str = "mixed"
+    object_source: str = "procedural"
+    """GraspClutter-v1's ``object_source`` (e.g. ``"random_urdfs"``); in the fingerprint when not the default."""
     ho_variant: str = "rtv3_authors"
     shared_control: dict[str, Any] = field(default_factory=dict)
     """Overrides of :class:`SharedControlConfig` fields for RT-V3 (e.g. ``{"ood_dofs": "translation"}``);
@@ -180,6 +182,8 @@ class BenchmarkConfig:
             policy_path=str(policy_path.resolve()) if policy_path is not None else None,
             policy_weights_sha256=weights_digest(policy_path) if policy_path is not None else None,
             shared_control=self._shared_control_settings() if self.uses_shared_controller else None, **self.extra,
+            # Only when set, so that runs made before the option existed still resume.
+            **({"object_source": self.object_source} if self.object_source != "procedural" else {}),
         )
 
 
@@ -485,9 +489,12 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     fingerprint = config.fingerprint(policy_path)
     results = results_store(output, fingerprint)
     goal_checks = RecordStore(output / "goals.csv", GOAL_FIELDS, ("scene_seed", "grasp_index"),
-                              {k: fingerprint[k] for k in ("seed", "scene_type", "protocol")})
+                              {k: fingerprint[k] for k in ("seed", "scene_type", "protocol", "object_source")
+                               if k in fingerprint})
 
     env_kwargs: dict[str, Any] = dict(obs_mode=config.obs_mode, scene_type=config.scene_type)
+    if config.object_source != "procedural":
+        env_kwargs.update(object_source=config.object_source)
     if policy is not None:
         env_kwargs.update(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps))
     env = SharedControlEnv(rendered_context=config.rendered_context, **env_kwargs)
