@@ -92,18 +92,20 @@ class TeleopSession:
 
             policy = load_policy(config.policy_path)
             num_points, max_grasps = int(policy.config.num_points), int(policy.config.max_grasps)
+        # a 320 px view (the window scales it to 512): rendering is the slowest part on a CPU
+        render = dict(render_mode="rgb_array", human_render_camera_configs=dict(width=320, height=320))
+        render = render if not config.headless else {}
+        self.env = SharedControlEnv(num_points=num_points, max_grasps=max_grasps, scene_type=config.scene_type,
+                                    rendered_context=True, **render)
+        self.env.method = make_method(config.method, controller_speed_limits(self.env.base), policy=policy)
+        self.speed_limits = controller_speed_limits(self.env.base)
         self.display = None
-        if not config.headless:
+        if not config.headless:  # the window opens once the scene can be shown
             from rtv3_maniskill.experiments.teleop_display import TeleopDisplay
 
             self.display = TeleopDisplay()
         self.input = make_input(config.input, config.user_seed)
         self.simulated = isinstance(self.input, SimulatedOperator)
-        render = dict(render_mode="rgb_array") if self.display is not None else {}
-        self.env = SharedControlEnv(num_points=num_points, max_grasps=max_grasps, scene_type=config.scene_type,
-                                    rendered_context=True, **render)
-        self.env.method = make_method(config.method, controller_speed_limits(self.env.base), policy=policy)
-        self.speed_limits = controller_speed_limits(self.env.base)
         self.actions = GraspActions(config.grasp_config)
         self.monitor = GraspTrialMonitor(self.env.base, config.trial_config)
         self.recorder = None
@@ -175,6 +177,8 @@ class TeleopSession:
                      timeout=cfg.trial_config.timeout_s, mode="none", phase="free", gripper="open")
         if self.display is not None:
             self.display.draw(_frame(env), dict(panel, time=0.0, contacts=0))
+            self.display.events()  # keys pressed while the scene loaded do not count
+        print(f"trial {trial + 1}: scene {scene_seed}, {task}: started", flush=True)
         outcome, info, step = None, {}, 0
         next_tick = time.perf_counter()
         while outcome is None:

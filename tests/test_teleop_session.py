@@ -1,0 +1,160 @@
+"""`rtv3 teleop`: a person at the keyboard (Xvfb + xdotool), the grasp buttons, the recorded LeRobot session."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from rtv3_maniskill import features
+from rtv3_maniskill.datasets.session_recorder import ASSIST_MODES, OUTCOMES, USER_TWIST
+from rtv3_maniskill.shared_control.teleop import KeyboardMapping
+
+REPO = Path(__file__).resolve().parents[1]
+RTV3 = str(Path(sys.executable).with_name("rtv3"))
+
+
+def _frames(folder: Path) -> pd.DataFrame:
+    files = sorted((folder / "data").glob("*/*.parquet"))
+    assert files, f"no LeRobot data in {folder}"
+    return pd.concat([pd.read_parquet(f) for f in files])
+
+
+def _start_xvfb() -> tuple[subprocess.Popen, str]:
+    read, write = os.pipe()
+    xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(write), "-screen", "0", "1024x600x24", "-nolisten", "tcp"],
+                            pass_fds=(write,), stderr=subprocess.DEVNULL)
+    os.close(write)
+    with os.fdopen(read) as f:
+        number = f.readline().strip()
+    assert number, "Xvfb did not report its display number"
+    return xvfb, f":{number}"
+
+
+def _xdotool(display: str, *args: str) -> str:
+    out = subprocess.run(["xdotool", *args], env=dict(os.environ, DISPLAY=display), capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 0, f"xdotool {args} failed: {out.stderr}"
+    return out.stdout.strip()
+
+
+@pytest.mark.skipif(shutil.which("Xvfb") is None or shutil.which("xdotool") is None,
+                    reason="Xvfb and xdotool drive the window: bash scripts/setup.sh --dev installs them")
+def test_keyboard_session_under_xvfb(tmp_path):
+    """A person's session: key presses reach the window, the screenshot shows scene + overlays, the
+    recorded episode holds the keys' twists, finite executed twists and mode labels."""
+    xvfb, display = _start_xvfb()
+    record, shot = tmp_path / "session", tmp_path / "teleop.png"
+    env = dict(os.environ, DISPLAY=display, SDL_VIDEODRIVER="x11", SDL_AUDIODRIVER="dummy")
+    proc = subprocess.Popen([RTV3, "teleop", "--method", "rtv3", "--input", "keyboard", "--record", str(record),
+                             "--scene-seed", "3", "--screenshot", str(shot)], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        lines = []
+        for line in proc.stdout:  # the trial starts once the scene is loaded and shown
+            lines.append(line)
+            if "started" in line:
+                break
+        assert lines and "started" in lines[-1], "".join(lines)[-3000:]
+        window = _xdotool(display, "search", "--sync", "--class", "rtv3").split()[0]
+        _xdotool(display, "windowfocus", "--sync", window)
+        for key, seconds in (("w", 3.0), ("q", 2.5)):
+            _xdotool(display, "keydown", key)
+            time.sleep(seconds)
+            _xdotool(display, "keyup", key)
+            time.sleep(0.5)
+        _xdotool(display, "key", "F12")  # pygame saves the window to --screenshot
+        time.sleep(1.5)
+        _xdotool(display, "key", "Escape")
+        output, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        xvfb.terminate()
+        xvfb.wait(timeout=10)
+    assert proc.returncode == 0, output[-3000:]
+    assert shot.exists(), f"no screenshot written:\n{output[-2000:]}"
+
+    import pygame
+
+    image = pygame.surfarray.array3d(pygame.image.load(str(shot))).swapaxes(0, 1)  # (H, W, 3)
+    scene, panel = image[:, :512], image[:, 512:]
+    assert len(np.unique(scene.reshape(-1, 3), axis=0)) > 200, "the scene view looks empty"
+    assert (panel.max(-1) > 200).sum() > 2000, "the overlay panel has no text"
+
+    assert (record / "data").exists(), f"nothing recorded:\n{output[-3000:]}"
+    frames = _frames(record)
+    user = np.stack(frames[USER_TWIST].to_numpy())
+    mapping = KeyboardMapping()
+    w, q = mapping.twist({"w"}).numpy(), mapping.twist({"q"}).numpy()
+    moving = user[np.abs(user).sum(1) > 0]
+    assert len(moving) >= 4, "the key presses did not reach the session"
+    assert all(np.allclose(row, w, atol=1e-6) or np.allclose(row, q, atol=1e-6) for row in moving), moving[:5]
+    assert np.isclose(moving, w, atol=1e-6).all(1).any() and np.isclose(moving, q, atol=1e-6).all(1).any()
+    for key in (features.ACTION, "commanded_twist"):
+        assert np.isfinite(np.stack(frames[key].to_numpy())).all()
+    modes = {ASSIST_MODES[int(np.ravel(m)[0])] for m in frames["assist_mode"]}
+    assert modes & {"shared", "autonomous", "user_only"}, modes
+    assert {OUTCOMES[int(np.ravel(o)[0])] for o in frames["trial_outcome"]} == {"aborted"}
+    assert (record / "sessions.csv").read_text().count("aborted") == 1
+
+
+class ButtonScript:
+    """An input that holds still and presses approach, grasp, lift in turn (what a person does at the pre-grasp)."""
+
+    name = "buttons"
+
+    def reset(self, env, actions=None) -> None:
+        self.actions, self.todo = actions, ["approach", "grasp", "lift"]
+
+    def poll(self, tcp_pose, events):
+        from rtv3_maniskill.experiments.teleop_inputs import UserInput
+
+        buttons = [self.todo.pop(0)] if self.todo and not self.actions.scripted else []
+        return UserInput(torch.zeros(6, dtype=torch.float64), torch.zeros(6, dtype=torch.float64), buttons)
+
+
+def test_grasp_buttons_lift_the_target_and_a_miss_fails(tmp_path):
+    """From the target's pre-grasp (IK), Y-A-X lift the target: success, recorded; from 6 cm further back
+    the gripper closes on air: the trial fails."""
+    from rtv3_maniskill import se3
+    from rtv3_maniskill.datasets.planner import PandaPlanner
+    from rtv3_maniskill.experiments.grasp_trial import TrialConfig
+    from rtv3_maniskill.experiments.teleop_session import SessionConfig, TeleopSession
+
+    config = SessionConfig(method="direct", input="simulated:ideal", scene_seed=2, headless=True,
+                           record=tmp_path / "session", trial_config=TrialConfig(timeout_s=8.0))
+    session = TeleopSession(config)
+    session.input, session.simulated = ButtonScript(), True
+    try:
+        session.env.reset(seed=2)
+        planner = PandaPlanner(session.env.base.layouts[0])
+        pregrasp = session.env.user_goal()
+        config.init_qpos = planner.solve_ik(pregrasp.numpy())
+        assert config.init_qpos is not None
+        hit = session.run_trial(0)
+        config.init_qpos = planner.solve_ik(se3.translate_along_z(pregrasp, -0.06).numpy())
+        assert config.init_qpos is not None
+        miss = session.run_trial(1)
+    finally:
+        session.close()
+    assert hit.outcome == "success", hit
+    assert miss.outcome != "success", miss
+    frames = _frames(tmp_path / "session")
+    buttons = np.stack(frames[frames["episode_index"] == 0]["button_events"].to_numpy())
+    assert buttons.sum(0).tolist() == [1, 0, 1, 1]  # grasp, release, approach, lift
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    dataset = LeRobotDataset("local/session", root=tmp_path / "session")
+    assert dataset.meta.total_episodes == 2
+    first = dataset[0]
+    assert first[features.STATE_HISTORY].shape == (features.HISTORY_STEPS * features.STATE_DIM,)
+    assert first["class_weights"].shape == (64,)
