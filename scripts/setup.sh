@@ -62,3 +62,17 @@ if ! vulkan_ok; then
   fi
   log "software Vulkan (lavapipe) is working"
 fi
+
+# --dev: the keyboard-session test drives the `rtv3 teleop` window under a virtual X server.
+if [[ -n "$extras" ]]; then
+  missing=""
+  for tool in Xvfb:xvfb xdotool:xdotool; do
+    command -v "${tool%%:*}" >/dev/null || missing="$missing ${tool##*:}"
+  done
+  if [[ -n "$missing" ]]; then
+    log "installing$missing (the teleop test sends key presses to a window on a virtual display)"
+    SUDO=""; [[ $(id -u) -ne 0 ]] && SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq $missing >/dev/null
+  fi
+fi
