@@ -24,7 +24,8 @@ _EPS = 1e-6
 def _skew_map() -> torch.Tensor:
     """Constant ``(3, 9)``: ``w @ map`` is the flattened ``[w]_x``."""
     m = torch.zeros(3, 9, dtype=torch.float64)
-    for axis, (row, col), sign in ((2, (0, 1), -1), (1, (0, 2), 1), (2, (1, 0), 1), (0, (1, 2), -1), (1, (2, 0), -1), (0, (2, 1), 1)):
+    for axis, (row, col), sign in ((2, (0, 1), -1), (1, (0, 2), 1), (2, (1, 0), 1), (0, (1, 2), -1), (1, (2, 0), -1),
+                                   (0, (2, 1), 1)):
         m[axis, 3 * row + col] = sign
     return m
 
@@ -217,7 +218,8 @@ def matrix_to_quat(rot: torch.Tensor) -> torch.Tensor:
     """Rotation matrix ``(..., 3, 3)`` -> unit quaternion ``(..., 4)`` wxyz with ``w >= 0``."""
     lead = rot.shape[:-2]
     entries = torch.cat([torch.ones(*lead, 1, dtype=rot.dtype, device=rot.device), rot.reshape(*lead, 9)], -1)
-    out = entries @ constant_like(_QUAT_MAPS_T, rot)  # (..., 20): 4 candidates x 4, then the 4 pivots [trace, m00, m11, m22]
+    # (..., 20): 4 candidates x 4, then the 4 pivots [trace, m00, m11, m22]
+    out = entries @ constant_like(_QUAT_MAPS_T, rot)
     cands = out[..., :16].reshape(*lead, 4, 4)
     best = out[..., 16:].argmax(-1)
     quat = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4))[..., 0, :]

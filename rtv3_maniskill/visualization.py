@@ -42,7 +42,8 @@ def plot_point_cloud_and_grasps(
     for i, (pose, width) in enumerate(zip(grasp_poses, grasp_widths)):
         is_target = target is not None and i == target
         for line in gripper_lines(pose, float(width)):
-            ax.plot(*line.T, color="red" if is_target else "tab:green", lw=2.0 if is_target else 0.6, alpha=1.0 if is_target else 0.6)
+            ax.plot(*line.T, color="red" if is_target else "tab:green", lw=2.0 if is_target else 0.6,
+                    alpha=1.0 if is_target else 0.6)
     if trajectory is not None and len(trajectory):
         ax.plot(*trajectory.T, color="black", lw=1.5)
         ax.scatter(*trajectory[0], color="black", s=20, marker="o")
@@ -65,7 +66,8 @@ def grasp_array_to_poses(grasps: np.ndarray) -> np.ndarray:
     return se3.pose_to_matrix(g[:, :3], g[:, 3:7]).numpy()
 
 
-def save_scene_figure(path, image: np.ndarray, points: np.ndarray, grasps: np.ndarray, target: int | None, title: str) -> None:
+def save_scene_figure(path, image: np.ndarray, points: np.ndarray, grasps: np.ndarray, target: int | None,
+                      title: str) -> None:
     """A two-panel PNG: the rendered scene, and the point cloud with the grasp candidates."""
     fig = plt.figure(figsize=(12, 5.5))
     ax_img = fig.add_subplot(1, 2, 1)

@@ -124,7 +124,8 @@ class HindsightGoals:
         else:
             group_ids = torch.as_tensor(list(target_groups), dtype=torch.long)
             if group_ids.shape != (n,):
-                raise ValueError(f"target_groups must have one id per goal pose ({n}), got shape {tuple(group_ids.shape)}")
+                raise ValueError(f"target_groups must have one id per goal pose ({n}), "
+                                 f"got shape {tuple(group_ids.shape)}")
         unique, self._group_index = torch.unique(group_ids, return_inverse=True)
         self.goal_ids = unique
         """``(G,)`` goal ids in belief order."""

@@ -44,7 +44,8 @@ _LOG_2PI = math.log(2 * math.pi)
 # --------------------------------------------------------------------------- Gaussians
 
 
-def regularize_covariance(cov: torch.Tensor, min_var: float = MIN_VARIANCE, max_var: float = MAX_VARIANCE) -> torch.Tensor:
+def regularize_covariance(cov: torch.Tensor, min_var: float = MIN_VARIANCE,
+                          max_var: float = MAX_VARIANCE) -> torch.Tensor:
     """Symmetrise ``(..., D, D)`` and clamp its eigenvalues to ``[min_var, max_var]``."""
     sym = 0.5 * (cov + cov.transpose(-1, -2))
     eigval, eigvec = torch.linalg.eigh(sym)
@@ -98,7 +99,8 @@ def kalman_update(
     new_mean = mean + (kalman_gain @ (observation - mean).unsqueeze(-1)).squeeze(-1)
     eye = torch.eye(mean.shape[-1], dtype=mean.dtype, device=mean.device)
     i_minus_k = eye - kalman_gain
-    new_cov = i_minus_k @ cov @ i_minus_k.transpose(-1, -2) + kalman_gain @ observation_cov @ kalman_gain.transpose(-1, -2)
+    new_cov = (i_minus_k @ cov @ i_minus_k.transpose(-1, -2)
+               + kalman_gain @ observation_cov @ kalman_gain.transpose(-1, -2))
     return new_mean, regularize_covariance(new_cov), kalman_gain
 
 

@@ -355,10 +355,12 @@ class SharedController:
                 observed = (user.abs() > c.input_threshold) if c.uncommanded_axes == "missing" else None
                 prior, fused = posterior.prior_and_fused_mixtures(
                     mixture, user, s_u, g_u, c.reweight_rotation_at, observed=observed)
-                fired = active & posterior.is_out_of_distribution(fused, c.ood_alpha, c.ood_covariance, c.ood_dofs) & ~no_grasps
+                fired = (active & posterior.is_out_of_distribution(fused, c.ood_alpha, c.ood_covariance, c.ood_dofs)
+                         & ~no_grasps)
             else:
                 prior = posterior.prior_twist_mixture(mixture)
-            self._ood_remaining = torch.where(fired, torch.full_like(self._ood_remaining, c.ood_steps), self._ood_remaining)
+            self._ood_remaining = torch.where(fired, torch.full_like(self._ood_remaining, c.ood_steps),
+                                              self._ood_remaining)
             ood = (in_window | fired) & ~no_grasps
             shared = active & ~ood & ~no_grasps
             autonomous = ~active & ~ood & ~no_grasps & (dist > c.autonomy_cutoff_distance)
@@ -370,7 +372,8 @@ class SharedController:
                 action = torch.where(shared[:, None], mode, action)
             if autonomous.any():
                 action = torch.where(autonomous[:, None], most_likely_twist(prior), action)
-            modes = ["shared" if s else "autonomous" if a else "user_only" for s, a in zip(shared.tolist(), autonomous.tolist())]
+            modes = ["shared" if s else "autonomous" if a else "user_only"
+                     for s, a in zip(shared.tolist(), autonomous.tolist())]
             # Diagnostics: the fused mixture where it was executed, the prior's elsewhere.
             shown = prior
             if fused is not None and shared.any():

@@ -128,7 +128,8 @@ class LaggyUser(SimulatedUser):
     def __call__(self, ee_pose: Any) -> torch.Tensor:
         e = self.error(ee_pose)  # validates the pose even when the command is repeated
         repeat = self._previous is not None and self.rng.random() < self.repeat_probability
-        command = self._previous.clone() if repeat else clamp_twist_speed(e, self.max_linear_speed, self.max_angular_speed)
+        command = (self._previous.clone() if repeat
+                   else clamp_twist_speed(e, self.max_linear_speed, self.max_angular_speed))
         self._previous = command
         self.step_count += 1
         return command.clone()

@@ -116,7 +116,8 @@ def step_inputs(observation: Mapping[str, Any], user_twist: Any) -> tuple[torch.
         return state, torch.zeros(b, 6, dtype=torch.float32, device=state.device)
     user = _as_float_tensor(user_twist, "user_twist")
     if tuple(user.shape) != (b, 6):
-        raise ValueError(f"user_twist must have shape ({b}, 6) ([v (3), w (3)] per batch element), got {tuple(user.shape)}")
+        raise ValueError(f"user_twist must have shape ({b}, 6) ([v (3), w (3)] per batch element), "
+                         f"got {tuple(user.shape)}")
     if not torch.isfinite(user).all():
         raise ValueError(f"user_twist contains NaN or inf: {user.tolist()}")
     return state, user.to(state.device)

@@ -105,14 +105,16 @@ class GraspClutterEnv(BaseEnv):
             raise ValueError(f"unknown scene_type {scene_type!r}; expected one of {(*SCENE_TYPES, 'mixed')}")
         if num_objects is not None and num_objects <= 0:
             raise ValueError(f"num_objects must be positive or None, got {num_objects}")
-        for name, value in (("max_grasps", max_grasps), ("num_points", num_points), ("camera_resolution", camera_resolution)):
+        for name, value in (("max_grasps", max_grasps), ("num_points", num_points),
+                            ("camera_resolution", camera_resolution)):
             if value <= 0:
                 raise ValueError(f"{name} must be positive, got {value}")
         if voxel_size <= 0:
             raise ValueError(f"voxel_size must be positive, got {voxel_size}")
         obs_mode = kwargs.get("obs_mode", "state")
         if obs_mode is not None and obs_mode not in self.SUPPORTED_OBS_MODES:
-            raise ValueError(f"unsupported obs_mode {obs_mode!r} for GraspClutter-v1; expected one of {self.SUPPORTED_OBS_MODES}")
+            raise ValueError(f"unsupported obs_mode {obs_mode!r} for GraspClutter-v1; "
+                             f"expected one of {self.SUPPORTED_OBS_MODES}")
         self.scene_type = scene_type
         self.num_objects = num_objects
         self.object_set = make_object_set(object_source)  # raises on a missing / empty folder
@@ -182,7 +184,8 @@ class GraspClutterEnv(BaseEnv):
             padded, mask = grasp_set.to_padded(self.max_grasps)
             grasps[i], grasps_mask[i] = torch.from_numpy(padded), torch.from_numpy(mask)
             self.objects.append(
-                [self._build_object(obj, pose, i, j, material) for j, (obj, pose) in enumerate(zip(layout.objects, layout.object_poses))]
+                [self._build_object(obj, pose, i, j, material)
+                 for j, (obj, pose) in enumerate(zip(layout.objects, layout.object_poses))]
             )
             surface = torch.from_numpy(sample_scene_surface(layout, rng)).float()[None]
             generator = torch.Generator().manual_seed(int(self._episode_seed[i]))
@@ -245,9 +248,11 @@ class GraspClutterEnv(BaseEnv):
                     elif shape.kind == "sphere":
                         builder.add_sphere_visual(local, radius=shape.params[0], material=color)
                     elif shape.kind == "cylinder":
-                        builder.add_cylinder_visual(local, radius=shape.params[0], half_length=shape.params[1], material=color)
+                        builder.add_cylinder_visual(local, radius=shape.params[0], half_length=shape.params[1],
+                                                    material=color)
                     elif shape.kind == "capsule":
-                        builder.add_capsule_visual(local, radius=shape.params[0], half_length=shape.params[1], material=color)
+                        builder.add_capsule_visual(local, radius=shape.params[0], half_length=shape.params[1],
+                                                   material=color)
                     else:
                         builder.add_visual_from_file(convex_part_file(shape.vertices), local, material=color)
         builder.set_scene_idxs([env])
@@ -271,11 +276,13 @@ class GraspClutterEnv(BaseEnv):
                 noise = torch.as_tensor(self._batched_episode_rng[env_idx].normal(0, 0.02, 9), dtype=torch.float32)
                 qpos = torch.as_tensor(START_QPOS, dtype=torch.float32) + noise.reshape(b, 9)
             else:
-                qpos = torch.as_tensor(qpos, dtype=torch.float32).reshape(-1, torch.as_tensor(qpos).shape[-1]).expand(b, -1).clone()
+                qpos = (torch.as_tensor(qpos, dtype=torch.float32).reshape(-1, torch.as_tensor(qpos).shape[-1])
+                        .expand(b, -1).clone())
                 if qpos.shape[-1] == 7:
                     qpos = torch.cat([qpos, torch.full((b, 2), 0.04)], -1)
                 if qpos.shape[-1] != 9 or not torch.isfinite(qpos).all():
-                    raise ValueError(f"options['init_qpos'] must be finite with 7 or 9 joint values, got shape {tuple(qpos.shape)}")
+                    raise ValueError("options['init_qpos'] must be finite with 7 or 9 joint values, "
+                                     f"got shape {tuple(qpos.shape)}")
             qpos[:, 7:] = 0.04
             self.agent.reset(qpos)
             self.agent.robot.set_pose(sapien.Pose(p=ROBOT_BASE_POSITION.tolist()))
@@ -286,14 +293,16 @@ class GraspClutterEnv(BaseEnv):
     def _set_target(self, env_idx: torch.Tensor, requested: Any) -> None:
         counts = self.grasps_mask[env_idx].sum(-1).long()
         if requested is None:
-            draws = torch.as_tensor(self._batched_episode_rng[env_idx].random_sample(), dtype=torch.float32, device=self.device)
+            draws = torch.as_tensor(self._batched_episode_rng[env_idx].random_sample(), dtype=torch.float32,
+                                    device=self.device)
             index = (draws.reshape(-1) * counts).long().clamp(max=counts - 1)
         else:
             index = torch.as_tensor(requested, dtype=torch.long, device=self.device).reshape(-1).expand(len(env_idx))
             bad = (index < 0) | (index >= counts)
             if bad.any():
                 raise ValueError(
-                    f"target_grasp_index {index[bad].tolist()} out of range: scenes have {counts[bad].tolist()} grasp candidates"
+                    f"target_grasp_index {index[bad].tolist()} out of range: "
+                    f"scenes have {counts[bad].tolist()} grasp candidates"
                 )
         self.target_grasp_index[env_idx] = index
 
@@ -318,7 +327,8 @@ class GraspClutterEnv(BaseEnv):
     def pregrasp_distance(self) -> torch.Tensor:
         """``(B,)`` pose distance (docs/PAPER_NOTES.md, shared-control weights) of the TCP to the pre-grasp,
         the smaller over the grasp and its pi-about-z twin (parallel-jaw symmetry)."""
-        return se3.symmetric_pose_distance(self.target_pregrasp_pose, self.tcp_pose_matrix, se3.SHARED_CONTROL_ROT_WEIGHT)
+        return se3.symmetric_pose_distance(self.target_pregrasp_pose, self.tcp_pose_matrix,
+                                           se3.SHARED_CONTROL_ROT_WEIGHT)
 
     def robot_in_collision(self) -> torch.Tensor:
         """``(B,)`` bool: any robot link but the base touches something with force above threshold."""
@@ -349,7 +359,8 @@ class GraspClutterEnv(BaseEnv):
 
     def step(self, action):
         if isinstance(action, (torch.Tensor, np.ndarray, list, tuple)):
-            values = torch.as_tensor(np.asarray(action, dtype=np.float32) if not isinstance(action, torch.Tensor) else action)
+            values = torch.as_tensor(np.asarray(action, dtype=np.float32) if not isinstance(action, torch.Tensor)
+                                     else action)
             if not torch.isfinite(values).all():
                 raise ValueError(f"action contains NaN or inf: {values.tolist()}")
         return super().step(action)
@@ -375,7 +386,8 @@ class GraspClutterEnv(BaseEnv):
         if self.obs_mode == "pointcloud":
             extra["point_cloud"], extra["point_cloud_mask"] = self.capture_point_cloud()
         else:
-            extra["point_cloud"], extra["point_cloud_mask"] = self.mesh_point_cloud.clone(), self.mesh_point_cloud_mask.clone()
+            extra["point_cloud"], extra["point_cloud_mask"] = (self.mesh_point_cloud.clone(),
+                                                               self.mesh_point_cloud_mask.clone())
         if self.obs_mode == "state":
             # ManiSkill flattens "state" observations into one vector per env.
             extra = {key: value.reshape(self.num_envs, -1) for key, value in extra.items()}

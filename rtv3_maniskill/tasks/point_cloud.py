@@ -44,7 +44,8 @@ def voxel_downsample(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
     return sums / counts[:, None]
 
 
-def resample(points: torch.Tensor, num_points: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def resample(points: torch.Tensor, num_points: int,
+             generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Pick ``num_points`` of ``(P, C)`` points without replacement, or zero-pad.
 
     Returns ``(num_points, C)`` points and a ``(num_points,)`` float mask.

@@ -58,11 +58,14 @@ def add_collision_shapes(builder, shapes: list[CollisionShape], material=None, d
         elif shape.kind == "sphere":
             builder.add_sphere_collision(pose, radius=shape.params[0], material=material, density=density)
         elif shape.kind == "cylinder":
-            builder.add_cylinder_collision(pose, radius=shape.params[0], half_length=shape.params[1], material=material, density=density)
+            builder.add_cylinder_collision(pose, radius=shape.params[0], half_length=shape.params[1], material=material,
+                                           density=density)
         elif shape.kind == "capsule":
-            builder.add_capsule_collision(pose, radius=shape.params[0], half_length=shape.params[1], material=material, density=density)
+            builder.add_capsule_collision(pose, radius=shape.params[0], half_length=shape.params[1], material=material,
+                                          density=density)
         elif shape.kind == "convex":
-            builder.add_convex_collision_from_file(convex_part_file(shape.vertices), pose, material=material, density=density)
+            builder.add_convex_collision_from_file(convex_part_file(shape.vertices), pose, material=material,
+                                                   density=density)
         else:
             raise ValueError(f"unknown collision shape kind {shape.kind!r}")
 
@@ -111,8 +114,10 @@ class _SettleScene:
             for sign in (-1, 1):
                 offset = np.zeros(3)
                 offset[axis] = sign * (half_inner + thickness)
-                half = [thickness, half_inner + 2 * thickness, height / 2] if axis == 0 else [half_inner + 2 * thickness, thickness, height / 2]
-                builder.add_box_collision(sapien.Pose([center[0] + offset[0], center[1] + offset[1], height / 2]), half_size=half, material=self.material)
+                half = ([thickness, half_inner + 2 * thickness, height / 2] if axis == 0
+                        else [half_inner + 2 * thickness, thickness, height / 2])
+                builder.add_box_collision(sapien.Pose([center[0] + offset[0], center[1] + offset[1], height / 2]),
+                                          half_size=half, material=self.material)
         self.walls.append(builder.build_static("walls"))
 
     def remove_walls(self) -> None:
