@@ -35,7 +35,8 @@ SYNTHETIC_CLOUDS = ("table-box", "surface", "volume")
 def synthetic_xyz(batch: int, n: int, cloud: str, g: torch.Generator) -> torch.Tensor:
     """``(batch, n, 3)`` world-frame points (m) of the ``cloud`` layout (see the module docstring)."""
     if cloud == "table-box":
-        table = torch.rand(batch, n // 2, 3, generator=g) * torch.tensor([0.6, 0.6, 0.0]) + torch.tensor([0.0, -0.3, 0.0])
+        table = (torch.rand(batch, n // 2, 3, generator=g) * torch.tensor([0.6, 0.6, 0.0])
+                 + torch.tensor([0.0, -0.3, 0.0]))
         box = torch.rand(batch, n - n // 2, 3, generator=g) * 0.06 + torch.tensor([0.4, 0.0, 0.0])
         return torch.cat([table, box], 1)
     if cloud == "surface":  # row-major 7.5 mm grid, each point jittered inside its voxel
@@ -71,9 +72,11 @@ def synthetic_batch(batch: int, cfg: RTV3Config, seed: int = 0, cloud: str = "ta
         features.POINT_CLOUD_MASK: torch.ones(batch, n),
         features.GRASPS: grasps,
         features.GRASPS_MASK: torch.ones(batch, m),
-        features.ACTION: (velocity * torch.tensor([1.0, -1.0, -1.0])).repeat(batch, h, 2) * torch.tensor([1.0] * 3 + [0.0] * 3),
+        features.ACTION: ((velocity * torch.tensor([1.0, -1.0, -1.0])).repeat(batch, h, 2)
+                          * torch.tensor([1.0] * 3 + [0.0] * 3)),
         f"{features.ACTION}_is_pad": torch.zeros(batch, h, dtype=torch.bool),
-        features.TARGET_GRASP: torch.zeros(batch, 1, dtype=torch.long),  # training applies the grasp-subset augmentation
+        # training applies the grasp-subset augmentation
+        features.TARGET_GRASP: torch.zeros(batch, 1, dtype=torch.long),
     }
 
 
@@ -146,7 +149,8 @@ def first_stage_tokens(policy: RTV3Policy, single: dict[str, torch.Tensor]) -> i
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--threads", type=int, default=1, help="intra-op threads (1 is robust on a shared 2-core machine)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="intra-op threads (1 is robust on a shared 2-core machine)")
     parser.add_argument("--device", default="cpu",
                         help="torch device of the policy (e.g. cuda); inputs start on the CPU, as an observation does, "
                              "and every timed call waits for the device")
@@ -158,7 +162,8 @@ def main() -> None:
     parser.add_argument("--point-stem-poolings", type=int, default=None,
                         help="override RTV3Config.point_stem_poolings of the untrained default-size policy")
     parser.add_argument("--cloud", choices=SYNTHETIC_CLOUDS, default="table-box",
-                        help="spatial layout of the synthetic cloud (see the module docstring; ignored with --scene-seed)")
+                        help="spatial layout of the synthetic cloud "
+                             "(see the module docstring; ignored with --scene-seed)")
     parser.add_argument("--scene-seed", type=int, default=None,
                         help="time a rendered GraspClutter-v1 scene (its cloud and grasps) instead of synthetic inputs")
     parser.add_argument("--policy.path", dest="policy_path", default=None,
@@ -189,7 +194,8 @@ def main() -> None:
         policy = RTV3Policy(cfg)
     policy.to(device)
     print(f"parameters: {sum(p.numel() for p in policy.parameters()):,}  device: {device}  threads: "
-          f"{torch.get_num_threads()}  N={cfg.num_points} M={cfg.max_grasps}  point_stem_poolings={cfg.point_stem_poolings}")
+          f"{torch.get_num_threads()}  N={cfg.num_points} M={cfg.max_grasps}  "
+          f"point_stem_poolings={cfg.point_stem_poolings}")
 
     if args.scene_seed is None:
         single = synthetic_observation(cfg, args.cloud)

@@ -7,8 +7,8 @@ Times :meth:`SharedController.step` (prior forward pass + posterior fusion + mod
 without one), one intra-op thread. The env is stepped between calls (with the controller's
 output; a mode-switching simulated user who pauses 10 steps after every 20 drives) but only the
 controller call is timed, per mode the step ran in (``shared``, ``autonomous``, ``user_only``:
-every mode runs the prior) and over ``all`` steps. Without a checkpoint an untrained ``RTV3Policy(RTV3Config())`` of the same size is used
-(latency does not depend on the weights). The timed loop runs ``--repeats`` times (the same
+every mode runs the prior) and over ``all`` steps. Without a checkpoint an untrained ``RTV3Policy(RTV3Config())``
+of the same size is used (latency does not depend on the weights). The timed loop runs ``--repeats`` times (the same
 scene and user each time); the table pools every step, and the last line gives each repeat's
 median (on a shared VM they drift by 20-50 % from minute to minute) and the median of them.
 """
@@ -79,7 +79,8 @@ def main(argv: list[str] | None = None) -> int:
         user.reset(env.user_goal())
         obs = env._obs
         this_repeat: list[float] = []
-        for i in tqdm(range(args.warmup + args.steps), desc=f"SharedController.step {repeat + 1}/{args.repeats}", unit="step"):
+        for i in tqdm(range(args.warmup + args.steps), desc=f"SharedController.step {repeat + 1}/{args.repeats}",
+                      unit="step"):
             pose = env.base.tcp_pose_matrix[0].double()
             command = user(pose)[None]
             observation = observation_from_env(obs)

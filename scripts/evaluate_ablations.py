@@ -26,9 +26,12 @@ ROWS = {
 }
 PAPER = {  # paper Table I (their data and compute); their first row drops *both* encoders
     # (42.71 / 83.79 / 46.40 / 92.89, no planning numbers), so "w/o grasp encoder" has no paper twin.
-    "full": {"ade_bom": 26.70, "fde_bom": 37.90, "ade_ml": 32.05, "fde_ml": 47.87, "SR": 0.904, "CR": 0.079, "TOR": 0.017},
-    "no_point_encoder": {"ade_bom": 26.95, "fde_bom": 38.12, "ade_ml": 30.36, "fde_ml": 44.17, "SR": 0.788, "CR": 0.103, "TOR": 0.109},
-    "6d_pred": {"ade_bom": 21.05, "fde_bom": 34.55, "ade_ml": 22.50, "fde_ml": 37.65, "SR": 0.034, "CR": 0.687, "TOR": 0.279},
+    "full": {"ade_bom": 26.70, "fde_bom": 37.90, "ade_ml": 32.05, "fde_ml": 47.87,
+             "SR": 0.904, "CR": 0.079, "TOR": 0.017},
+    "no_point_encoder": {"ade_bom": 26.95, "fde_bom": 38.12, "ade_ml": 30.36, "fde_ml": 44.17,
+                         "SR": 0.788, "CR": 0.103, "TOR": 0.109},
+    "6d_pred": {"ade_bom": 21.05, "fde_bom": 34.55, "ade_ml": 22.50, "fde_ml": 37.65,
+                "SR": 0.034, "CR": 0.687, "TOR": 0.279},
 }
 METRICS = ("ade_bom", "fde_bom", "ade_ml", "fde_ml")
 
@@ -105,7 +108,9 @@ def main() -> None:
                 text += f" ({scale * paper[key]:.1f})" if scale != 1.0 else f" ({paper[key]:.2f})"
             return text
 
-        lines.append(f"| {ROWS[row]} | " + " | ".join([*(cell(m) for m in METRICS), *(cell(k, 100.0) for k in ("SR", "CR", "TOR"))]) + " |")
+        lines.append(f"| {ROWS[row]} | "
+                     + " | ".join([*(cell(m) for m in METRICS), *(cell(k, 100.0) for k in ("SR", "CR", "TOR"))])
+                     + " |")
     cv = report["constant_velocity"]
     lines.append(f"| constant velocity | — | — | {cv['ade']:.2f} | {cv['fde']:.2f} | — | — | — |")
     (args.runs / "table1.md").write_text("\n".join(lines) + "\n")

@@ -61,7 +61,8 @@ def main() -> int:
     common = dict(scenes=args.scenes, users=users, seed=args.seed, goals_per_scene=args.goals_per_scene)
     run_benchmark(BenchmarkConfig(output=args.output / "direct", methods=["direct"], **common))
     direct = read_results(args.output / "direct" / "results.csv")
-    lines = ["| setting | user | trials | Direct SR | oracle SR | gain | W / L | McNemar p |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| setting | user | trials | Direct SR | oracle SR | gain | W / L | McNemar p |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
     for name, values in map(_parse_setting, args.setting or DEFAULT_SETTINGS):
         folder = args.output / name
         run_benchmark(BenchmarkConfig(output=folder, methods=["oracle"], shared_control=values, **common))
