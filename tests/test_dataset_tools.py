@@ -37,7 +37,8 @@ def _episodes(ds) -> list[tuple[int, int, str]]:
     out = {}
     for row in range(len(hf)):
         item = ds[row]
-        out.setdefault(int(item["episode_index"]), (int(item["scene_seed"]), int(item[features.TARGET_GRASP]), item["task"]))
+        out.setdefault(int(item["episode_index"]),
+                       (int(item["scene_seed"]), int(item[features.TARGET_GRASP]), item["task"]))
     return [out[k] for k in sorted(out)]
 
 
@@ -75,7 +76,8 @@ def test_delete_split_merge_modify_tasks_with_lerobot_dataset_tools(generated, t
     assert deleted.meta.total_frames == len(source) - source.meta.episodes[0]["length"]
 
     # split: by episode lists
-    parts = split_dataset(source, {"train": list(range(len(episodes) - 1)), "val": [len(episodes) - 1]}, output_dir=tmp_path / "split")
+    parts = split_dataset(source, {"train": list(range(len(episodes) - 1)), "val": [len(episodes) - 1]},
+                          output_dir=tmp_path / "split")
     train = _check_loads(parts["train"].repo_id, tmp_path / "split" / "train", episodes[:-1])
     val = _check_loads(parts["val"].repo_id, tmp_path / "split" / "val", episodes[-1:])
     assert len(train) + len(val) == len(source)
@@ -87,7 +89,8 @@ def test_delete_split_merge_modify_tasks_with_lerobot_dataset_tools(generated, t
 
     # modify_tasks (in place): on a copy
     shutil.copytree(generated, tmp_path / "retasked", ignore=shutil.ignore_patterns("rtv3_staging"))
-    modify_tasks(LeRobotDataset(REPO_ID, root=tmp_path / "retasked"), new_task="grasp something", episode_tasks={1: "grasp that"})
+    modify_tasks(LeRobotDataset(REPO_ID, root=tmp_path / "retasked"), new_task="grasp something",
+                 episode_tasks={1: "grasp that"})
     retasked = _check_loads(REPO_ID, tmp_path / "retasked", episodes)
     tasks = [e[2] for e in _episodes(retasked)]
     assert tasks[1] == "grasp that" and set(tasks[:1] + tasks[2:]) == {"grasp something"}

@@ -16,7 +16,8 @@ from rtv3_maniskill.cli import main
 from rtv3_maniskill.experiments import planning, prediction
 
 NUM_POINTS, MAX_GRASPS = 256, 16
-GEN_ARGS = ["--num-points", str(NUM_POINTS), "--max-grasps", str(MAX_GRASPS), "--context", "mesh", "--scene-type", "packed"]
+GEN_ARGS = ["--num-points", str(NUM_POINTS), "--max-grasps", str(MAX_GRASPS), "--context", "mesh",
+            "--scene-type", "packed"]
 
 
 def _random_poses(shape: tuple[int, ...], seed: int = 0) -> torch.Tensor:
@@ -27,7 +28,8 @@ def _random_poses(shape: tuple[int, ...], seed: int = 0) -> torch.Tensor:
 
 def _offset(x: float = 0.0, rz: float = 0.0) -> torch.Tensor:
     """Body-frame offset: translation x (m) along the pose's own x axis, then a rotation rz about its z axis."""
-    return se3.make_transform(se3.so3_exp(torch.tensor([0.0, 0.0, rz], dtype=torch.float64)), torch.tensor([x, 0.0, 0.0], dtype=torch.float64))
+    return se3.make_transform(se3.so3_exp(torch.tensor([0.0, 0.0, rz], dtype=torch.float64)),
+                              torch.tensor([x, 0.0, 0.0], dtype=torch.float64))
 
 
 # ----------------------------------------------------------------------------- prediction metrics
@@ -43,10 +45,12 @@ def test_metric_is_zero_for_a_perfect_prediction_and_scales_known_offsets():
     torch.testing.assert_close(ade, torch.full((4,), 10.0, dtype=torch.float64))
     torch.testing.assert_close(fde, torch.full((4,), 10.0, dtype=torch.float64))
     # World-frame 1 cm shift of poses with identity rotation: the same 10.0.
-    level = se3.make_transform(torch.eye(3, dtype=torch.float64).expand(3, 4, 3, 3), torch.rand(3, 4, 3, dtype=torch.float64))
+    level = se3.make_transform(torch.eye(3, dtype=torch.float64).expand(3, 4, 3, 3),
+                               torch.rand(3, 4, 3, dtype=torch.float64))
     shifted = level.clone()
     shifted[..., 0, 3] += 0.01
-    torch.testing.assert_close(prediction.displacement_errors(level, shifted), torch.full((3, 4), 10.0, dtype=torch.float64))
+    torch.testing.assert_close(prediction.displacement_errors(level, shifted),
+                               torch.full((3, 4), 10.0, dtype=torch.float64))
     # Rotation is weighted by 0.3/pi per rad (planning weights).
     rot_err = prediction.displacement_errors(gt, gt @ _offset(rz=0.1))
     torch.testing.assert_close(rot_err, torch.full((4, 12), 1000 * 0.3 / math.pi * 0.1, dtype=torch.float64))
@@ -128,7 +132,8 @@ def test_ground_truth_poses_are_the_integrated_recorded_twists(tiny_dataset):
     assert batch[features.STATE].shape == (len(windows[::7]), features.HISTORY_STEPS, features.STATE_DIM)
     # observation.state's twist at t+1 is the action realised over step t.
     twists = torch.stack(
-        [torch.as_tensor(episodes[i].states[t + 1 : t + 1 + features.HORIZON_STEPS, features.EE_TWIST]) for i, t in windows[::7]]
+        [torch.as_tensor(episodes[i].states[t + 1 : t + 1 + features.HORIZON_STEPS, features.EE_TWIST])
+         for i, t in windows[::7]]
     )
     integrated = prediction.future_poses(current, twists)
     assert prediction.displacement_errors(gt, integrated).max() < 0.5  # < 0.5e-3 of pose distance
@@ -169,7 +174,8 @@ def test_prediction_refuses_a_policy_of_another_context_size(tiny_dataset, tmp_p
     with pytest.raises(ValueError, match="N=256 points .* N=128"):
         prediction.run_prediction_evaluation(None, tiny_dataset, all_scenes=True, policy=policy, progress=False)
     with pytest.raises(SystemExit, match="no RT-V3 checkpoint"):
-        main(["evaluate", "prediction", "--policy.path", str(tmp_path), "--dataset.root", str(tiny_dataset), "--all-scenes"])
+        main(["evaluate", "prediction", "--policy.path", str(tmp_path), "--dataset.root", str(tiny_dataset),
+              "--all-scenes"])
 
 
 # ----------------------------------------------------------------------------- planning: success rule
@@ -194,7 +200,8 @@ def test_planning_success_rule_uses_the_pregrasp_its_twin_and_threshold():
     quarter = planning.planning_distance(pre[0] @ _offset(rz=math.pi / 2), grasps)[0]
     assert quarter == pytest.approx(0.15) and bool(planning.is_planning_success(quarter))
     # Under the shared-control weight (0.6/pi) the same pose would not count as reached (0.3 > 0.1): different rule.
-    assert se3.pose_distance(pre[0], pre[0] @ _offset(rz=math.pi / 2), se3.SHARED_CONTROL_ROT_WEIGHT) == pytest.approx(0.3)
+    assert se3.pose_distance(pre[0], pre[0] @ _offset(rz=math.pi / 2),
+                             se3.SHARED_CONTROL_ROT_WEIGHT) == pytest.approx(0.3)
     # Collision wins over success at the same step.
     assert planning.trial_outcome(collision=True, success=True) == "collision"
     assert planning.trial_outcome(collision=False, success=True) == "success"
@@ -236,8 +243,8 @@ def _trial_rows(folder: Path) -> list[dict]:
 
 def test_planning_benchmark_runs_writes_and_resumes(untrained_policy, tmp_path, capsys):
     out = tmp_path / "planning"
-    args = ["evaluate", "planning", "--policy.path", str(untrained_policy), "--scenes", "1", "--max-grasps-per-scene", "1",
-            "--point-cloud", "mesh", "--scene-type", "packed", "--output", str(out)]
+    args = ["evaluate", "planning", "--policy.path", str(untrained_policy), "--scenes", "1",
+            "--max-grasps-per-scene", "1", "--point-cloud", "mesh", "--scene-type", "packed", "--output", str(out)]
     assert main(args) == 0
     assert "SR" in capsys.readouterr().out
     rows = _trial_rows(out)
@@ -275,7 +282,8 @@ class _PreGraspOracle:
         tcp = se3.pose_to_matrix(state[features.EE_POS], state[features.EE_QUAT])
         pre = planning.pregrasp_poses(se3.pose_to_matrix(g[:3], g[3:7]))
         twin = se3.rotate_about_z(pre, math.pi)
-        goal = pre if se3.so3_log(tcp[:3, :3].T @ pre[:3, :3]).norm() <= se3.so3_log(tcp[:3, :3].T @ twin[:3, :3]).norm() else twin
+        goal = (pre if se3.so3_log(tcp[:3, :3].T @ pre[:3, :3]).norm()
+                <= se3.so3_log(tcp[:3, :3].T @ twin[:3, :3]).norm() else twin)
         return (se3.body_twist(tcp, goal, 0.5)).float()[None]  # close the gap in ~0.5 s (speed-limited)
 
 
@@ -306,7 +314,8 @@ def test_planning_trials_resume_after_a_torn_row_and_summary_leaves_out_missing_
     resumed.append(dict(base, scene_seed=7, grasp_index=4, outcome="timeout", steps=150))
     resumed.close()
     rows = planning.read_trials(path)
-    assert [(int(r["grasp_index"]), r["outcome"]) for r in rows] == [(2, "success"), (3, "no_start_pose"), (4, "timeout")]
+    assert [(int(r["grasp_index"]), r["outcome"]) for r in rows] == [(2, "success"), (3, "no_start_pose"),
+                                                                     (4, "timeout")]
     summary = planning.summarize(rows)
     assert summary["trials"] == 2 and summary["no_start_pose"] == 1
     assert (summary["SR"], summary["CR"], summary["TOR"]) == (0.5, 0.0, 0.5)

@@ -34,7 +34,8 @@ ARGS = ["--num-points", "256", "--max-grasps", "16", "--context", "mesh", "--sce
 
 def _windows() -> dict[str, list[float]]:
     past = [i / features.FPS for i in range(-features.HISTORY_STEPS + 1, 1)]
-    keys = [features.STATE, features.STATE_HISTORY, features.POINT_CLOUD, features.POINT_CLOUD_MASK, features.GRASPS, features.GRASPS_MASK]
+    keys = [features.STATE, features.STATE_HISTORY, features.POINT_CLOUD, features.POINT_CLOUD_MASK, features.GRASPS,
+            features.GRASPS_MASK]
     out = {k: past for k in keys}
     out[features.ACTION] = [i / features.FPS for i in range(features.HORIZON_STEPS)]
     return out
@@ -60,8 +61,10 @@ def test_tiny_generation_loads_with_training_windows(tiny_dataset):
     assert item[features.STATE].shape == (features.HISTORY_STEPS, features.STATE_DIM)
     # stored flat (LeRobot's dataset tools copy only 1-D features); features.unflatten restores them
     assert item[features.POINT_CLOUD].shape == (features.HISTORY_STEPS, 256 * 6)
-    assert features.unflatten(features.POINT_CLOUD, item[features.POINT_CLOUD]).shape == (features.HISTORY_STEPS, 256, 6)
-    assert features.unflatten(features.GRASPS, item[features.GRASPS]).shape == (features.HISTORY_STEPS, 16, features.GRASP_DIM)
+    assert (features.unflatten(features.POINT_CLOUD, item[features.POINT_CLOUD]).shape
+            == (features.HISTORY_STEPS, 256, 6))
+    assert (features.unflatten(features.GRASPS, item[features.GRASPS]).shape
+            == (features.HISTORY_STEPS, 16, features.GRASP_DIM))
     assert item[features.STATE_HISTORY].shape == (features.HISTORY_STEPS, features.HISTORY_STEPS * features.STATE_DIM)
     assert item[features.ACTION].shape == (features.HORIZON_STEPS, 6)
     assert item["task"].startswith("grasp the ")
@@ -99,7 +102,8 @@ def test_episode_ends_holding_at_the_pregrasp(tiny_dataset):
 def test_end_at_pregrasp_cuts_a_staged_approach():
     """Episodes staged with the approach (``--end-at grasp``) export cut at the pre-grasp + copies at rest."""
     rng = np.random.default_rng(0)
-    state, action = rng.normal(size=(40, features.STATE_DIM)).astype(np.float32), rng.normal(size=(40, 6)).astype(np.float32)
+    state, action = (rng.normal(size=(40, features.STATE_DIM)).astype(np.float32),
+                     rng.normal(size=(40, 6)).astype(np.float32))
     cut_state, cut_action = end_at_pregrasp(state, action, pregrasp_step=20)
     assert cut_state.shape == (21 + HOLD_STEPS, features.STATE_DIM) and cut_action.shape == (21 + HOLD_STEPS, 6)
     np.testing.assert_array_equal(cut_state[:21], state[:21])
@@ -114,8 +118,10 @@ def test_end_at_pregrasp_cuts_a_staged_approach():
 
 def test_interrupted_run_resumes_without_duplicates(tmp_path):
     root = tmp_path / "ds"
-    cmd = [sys.executable, "-m", "rtv3_maniskill.cli", "generate", "--num-scenes", "1", "--output", str(root), "--grasps-per-scene", "6", *ARGS]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    cmd = [sys.executable, "-m", "rtv3_maniskill.cli", "generate", "--num-scenes", "1", "--output", str(root),
+           "--grasps-per-scene", "6", *ARGS]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            env=dict(os.environ, PYTHONWARNINGS="ignore"))
     staging = root / "rtv3_staging"
     deadline = time.time() + 240
     while time.time() < deadline and not list(staging.glob("scene*_grasp*.npz")):
@@ -180,7 +186,8 @@ def test_truncated_staged_episode_names_the_file(tiny_dataset, tmp_path):
     data = victim.read_bytes()
     victim.write_bytes(data[: len(data) // 2])
     with pytest.raises(SystemExit, match=rf"(?s){victim.name}.*Delete it and rerun"):
-        main(["generate", "--num-scenes", "1", "--output", str(root), "--grasps-per-scene", "3", "--export-only", *ARGS])
+        main(["generate", "--num-scenes", "1", "--output", str(root), "--grasps-per-scene", "3", "--export-only",
+              *ARGS])
     victim.unlink()
     assert main(["generate", "--num-scenes", "1", "--output", str(root), "--grasps-per-scene", "3", *ARGS]) == 0
     assert victim.exists() and len(StagingArea(root).episode_files()) == episodes

@@ -134,7 +134,8 @@ def test_single_goal_assistance_with_rotation_turns_towards_the_goal_orientation
 def test_authors_public_variant_keeps_a_scaled_rotation_assistance_and_a_scaled_linear_branch():
     goal = pose_at((0.0, 0.0, 0.3), (math.pi, 0.0, 0.0)) @ pose_at((0.0, 0.0, 0.0), (0.0, 0.0, 0.5))
     original = HindsightOptimization("javdani2018", None, None, goals=goal[None]).step(observation_at(START), None)
-    public = HindsightOptimization("rtv3_authors_public", None, None, goals=goal[None]).step(observation_at(START), None)
+    public = HindsightOptimization("rtv3_authors_public", None, None,
+                                   goals=goal[None]).step(observation_at(START), None)
     torch.testing.assert_close(public[0, 3:], 0.125 * original[0, 3:])
     cost = VARIANTS["rtv3_authors_public"].translation
     d = torch.tensor([0.5], dtype=F64)

@@ -158,7 +158,8 @@ def test_scene_shapes_follow_scene_geometry_conventions(kinematics):
             for scale, inside in ((0.9, True), (1.1, False)):
                 point = centre + scale * (vertex - centre)
                 res = coal.DistanceResult()
-                coal.distance(geom.geometry, placement, probe, coal.Transform3s(np.eye(3), point), coal.DistanceRequest(), res)
+                coal.distance(geom.geometry, placement, probe, coal.Transform3s(np.eye(3), point),
+                              coal.DistanceRequest(), res)
                 assert (res.min_distance <= 1e-4) == inside, (shape.kind, scale)
 
 

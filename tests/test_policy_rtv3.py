@@ -47,7 +47,8 @@ def make_scene_batch(
     g = torch.Generator().manual_seed(seed)
     t_hist, horizon, n, m = cfg.n_obs_steps, cfg.horizon, cfg.num_points, cfg.max_grasps
     down = _rot_x(math.pi)  # gripper z axis pointing down
-    center = torch.tensor([0.5, 0.0, 0.05]) + torch.cat([box_spread * torch.randn(batch, 2, generator=g), torch.zeros(batch, 1)], 1)
+    center = torch.tensor([0.5, 0.0, 0.05]) + torch.cat([box_spread * torch.randn(batch, 2, generator=g),
+                                                         torch.zeros(batch, 1)], 1)
     half = torch.tensor([0.05, 0.03, 0.05])
 
     # Point cloud: half on the table, half on the box surface; the rest padding for sample 0.
@@ -66,9 +67,11 @@ def make_scene_batch(
     # Grasps: top-down on the box top with random yaw.
     yaw = torch.rand(batch, m, generator=g) * math.pi
     rot = down @ se3.so3_exp(torch.stack([torch.zeros_like(yaw), torch.zeros_like(yaw), yaw], -1))
-    pos = center[:, None] + torch.cat([0.02 * torch.randn(batch, m, 2, generator=g), torch.full((batch, m, 1), 0.04)], -1)
+    pos = center[:, None] + torch.cat([0.02 * torch.randn(batch, m, 2, generator=g),
+                                       torch.full((batch, m, 1), 0.04)], -1)
     grasp_pose = se3.make_transform(rot, pos)
-    grasps = torch.cat([se3.matrix_to_pose(grasp_pose), torch.full((batch, m, 1), 0.05), 0.5 + 0.5 * torch.rand(batch, m, 1, generator=g)], -1)
+    grasps = torch.cat([se3.matrix_to_pose(grasp_pose), torch.full((batch, m, 1), 0.05),
+                        0.5 + 0.5 * torch.rand(batch, m, 1, generator=g)], -1)
     n_valid = m if grasps_valid is None else grasps_valid
     grasp_mask = torch.zeros(batch, m)
     grasp_mask[:, :n_valid] = 1.0
@@ -223,7 +226,8 @@ def test_grid_pooling_of_a_z_ordered_list_needs_no_sort():
         slow = pool(shuffled)
         transposed = pool(z_sorted.serialize("z-trans"))  # sorted along the other curve: must sort
     for other in (slow, transposed):
-        for a, b in ((fast.feat, other.feat), (fast.xyz, other.xyz), (fast.grid, other.grid), (fast.batch, other.batch)):
+        for a, b in ((fast.feat, other.feat), (fast.xyz, other.xyz), (fast.grid, other.grid),
+                     (fast.batch, other.batch)):
             torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-6)
     key = serial_key(fast.batch, fast.grid, "z")
     assert fast.order == "z" and bool((key[1:] > key[:-1]).all())  # one point per voxel, z-sorted
@@ -414,7 +418,8 @@ def test_se3_equivariance(factorized: bool):
     transform = se3.make_transform(se3.so3_exp(2.0 * torch.randn(3, generator=g)), torch.randn(3, generator=g))
     moved = transform_world(obs, transform)
     assert not torch.allclose(moved[ft.STATE], obs[ft.STATE])
-    torch.testing.assert_close(policy.predict_action_chunk(moved), policy.predict_action_chunk(obs), atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(policy.predict_action_chunk(moved), policy.predict_action_chunk(obs), atol=1e-4,
+                               rtol=1e-4)
     a, b = policy.predict_step0_mixture(obs), policy.predict_step0_mixture(moved)
     torch.testing.assert_close(a.log_weights, b.log_weights, atol=1e-4, rtol=1e-4)
     torch.testing.assert_close(a.trans_mean, b.trans_mean, atol=1e-4, rtol=1e-4)
@@ -448,7 +453,8 @@ def test_step0_mixture_is_a_valid_unscaled_mixture(factorized: bool):
     omega2, gamma2 = mixture.rotation_given_translation(mixture.trans_mean + 0.1)
     assert not torch.allclose(omega, omega2)
     # Several translations per class in one call (leading dims) = one call each.
-    omega_both, gamma_both = mixture.rotation_given_translation(torch.stack([mixture.trans_mean, mixture.trans_mean + 0.1]))
+    omega_both, gamma_both = mixture.rotation_given_translation(torch.stack([mixture.trans_mean,
+                                                                            mixture.trans_mean + 0.1]))
     assert omega_both.shape == (2, 2, k, 3) and gamma_both.shape == (2, 2, k, 3, 3)
     torch.testing.assert_close(omega_both, torch.stack([omega, omega2]), atol=1e-6, rtol=1e-5)
     torch.testing.assert_close(gamma_both, torch.stack([gamma, gamma2]), atol=1e-6, rtol=1e-5)
@@ -609,7 +615,8 @@ def test_grasp_subset_augmentation_keeps_the_target():
     counts = kept.sum(1)
     assert counts.min() >= 10 and counts.max() <= 30 and counts.float().std() > 0
     # log-uniform sizes: small sets (the target nearly explicit) much more often than uniform ones
-    many = SceneContext(torch.zeros(4000, 4, 6), torch.ones(4000, 4, dtype=torch.bool), torch.zeros(4000, 40, 9), mask[:1].expand(4000, -1))
+    many = SceneContext(torch.zeros(4000, 4, 6), torch.ones(4000, 4, dtype=torch.bool), torch.zeros(4000, 40, 9),
+                        mask[:1].expand(4000, -1))
     goal = torch.zeros(4000, dtype=torch.long)
     log_counts = subsample_grasps(many, goal, 1, "log_uniform").grasp_mask.sum(1).float()
     uni_counts = subsample_grasps(many, goal, 1, "uniform").grasp_mask.sum(1).float()
@@ -736,7 +743,8 @@ def test_lerobot_dataset_factory_and_processors_train(tmp_path):
     written = _write_dataset(tmp_path / "ds", cfg)
     meta = written.meta
     assert meta.total_episodes == 2 and meta.fps == ft.FPS
-    dataset = LeRobotDataset("local/rtv3_test", root=tmp_path / "ds", delta_timestamps=resolve_delta_timestamps(cfg, meta))
+    dataset = LeRobotDataset("local/rtv3_test", root=tmp_path / "ds",
+                             delta_timestamps=resolve_delta_timestamps(cfg, meta))
     sample = dataset[0]
     assert sample[ft.STATE].shape == (8, ft.STATE_DIM) and sample[ft.ACTION].shape == (12, 6)
     assert sample[f"{ft.STATE}_is_pad"][:7].all()  # episode start: history padded
@@ -745,7 +753,8 @@ def test_lerobot_dataset_factory_and_processors_train(tmp_path):
     assert isinstance(policy, RTV3Policy)
     assert set(cfg.input_features) >= {ft.STATE, ft.POINT_CLOUD, ft.GRASPS_MASK}
     preprocessor, postprocessor = make_pre_post_processors(cfg, dataset_stats=meta.stats)
-    loader = torch.utils.data.DataLoader(dataset, batch_size=4, shuffle=True, generator=torch.Generator().manual_seed(0))
+    loader = torch.utils.data.DataLoader(dataset, batch_size=4, shuffle=True,
+                                         generator=torch.Generator().manual_seed(0))
     optimizer = cfg.get_optimizer_preset().build(policy.get_optim_params())
     policy.train()
     for _, raw in zip(range(3), loader):

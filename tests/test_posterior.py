@@ -44,7 +44,8 @@ def test_kalman_update_equals_information_form_product():
     new_mean, new_cov, gain = posterior.kalman_update(mean, cov, obs, obs_cov)
     info = torch.linalg.inv(cov) + torch.linalg.inv(obs_cov)
     expected_cov = torch.linalg.inv(info)
-    expected_mean = (expected_cov @ (torch.linalg.solve(cov, mean[..., None]) + torch.linalg.solve(obs_cov, obs[..., None])))[..., 0]
+    expected_mean = (expected_cov @ (torch.linalg.solve(cov, mean[..., None])
+                                     + torch.linalg.solve(obs_cov, obs[..., None])))[..., 0]
     torch.testing.assert_close(new_cov, expected_cov, rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(new_mean, expected_mean, rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(gain, cov @ torch.linalg.inv(cov + obs_cov))
@@ -76,7 +77,8 @@ def make_two_class_mixture(weights=(0.5, 0.5), batch: int = 1, dtype=torch.float
     weight[:, 2, 0] = 2.0  # omega_z = 2 v_x
     rot = linear_rotation(weight, torch.zeros(2, 3), 0.01 * torch.eye(3))
     lw = torch.log(torch.tensor(weights, dtype=dtype))
-    return TwistMixture(lw.expand(batch, 2).clone(), mu.expand(batch, 2, 3).clone(), cov.expand(batch, 2, 3, 3).clone(), rot)
+    return TwistMixture(lw.expand(batch, 2).clone(), mu.expand(batch, 2, 3).clone(), cov.expand(batch, 2, 3, 3).clone(),
+                        rot)
 
 
 def user_covs(batch: int = 1, trans: float = 0.03, rot: float = 0.1):
@@ -101,7 +103,8 @@ def test_fuse_user_command_per_class_translation_then_conditioned_rotation():
     torch.testing.assert_close(fused.trans_mean, exp_mu)
     torch.testing.assert_close(fused.trans_cov, exp_sigma)
     omega_at_fused, gamma_at_fused = rot(exp_mu)
-    exp_omega, exp_gamma, _ = posterior.kalman_update(omega_at_fused, gamma_at_fused, user[:, None, 3:].expand(b, k, 3), g_u[:, None])
+    exp_omega, exp_gamma, _ = posterior.kalman_update(omega_at_fused, gamma_at_fused, user[:, None, 3:].expand(b, k, 3),
+                                                      g_u[:, None])
     torch.testing.assert_close(fused.rot_mean, exp_omega)
     torch.testing.assert_close(fused.rot_cov, exp_gamma)
 
@@ -112,8 +115,8 @@ def test_prior_and_fused_in_one_call_equal_the_separate_functions(reweight_at):
     # prior_twist_mixture and fuse_user_command (with or without the prior passed in) give.
     gen = torch.Generator().manual_seed(5)
     b, k = 3, 4
-    rot = linear_rotation(torch.randn(k, 3, 3, generator=gen, dtype=DT), torch.randn(k, 3, generator=gen, dtype=DT) * 0.1,
-                          random_spd(gen, k)[None])
+    rot = linear_rotation(torch.randn(k, 3, 3, generator=gen, dtype=DT),
+                          torch.randn(k, 3, generator=gen, dtype=DT) * 0.1, random_spd(gen, k)[None])
     mixture = TwistMixture(torch.log_softmax(torch.randn(b, k, generator=gen, dtype=DT), -1),
                            torch.randn(b, k, 3, generator=gen, dtype=DT) * 0.1, random_spd(gen, b, k), rot)
     user = torch.randn(b, 6, generator=gen, dtype=DT) * 0.1
@@ -122,7 +125,8 @@ def test_prior_and_fused_in_one_call_equal_the_separate_functions(reweight_at):
     prior, fused = posterior.prior_and_fused_mixtures(mixture, user, s_u, g_u, reweight_at, observed=observed)
     expected_prior = posterior.prior_twist_mixture(mixture)
     for expected in (posterior.fuse_user_command(mixture, user, s_u, g_u, reweight_at, observed=observed),
-                     posterior.fuse_user_command(mixture, user, s_u, g_u, reweight_at, prior=expected_prior, observed=observed)):
+                     posterior.fuse_user_command(mixture, user, s_u, g_u, reweight_at, prior=expected_prior,
+                                                 observed=observed)):
         for name in ("log_weights", "trans_mean", "trans_cov", "rot_mean", "rot_cov", "trans_mahalanobis_sq",
                      "rot_mahalanobis_sq", "trans_class_mahalanobis_sq", "rot_class_mahalanobis_sq"):
             torch.testing.assert_close(getattr(fused, name), getattr(expected, name), msg=name)
@@ -231,7 +235,8 @@ def test_mode_is_at_least_as_dense_as_random_samples():
         random_spd(gen, 1, k, scale=0.1),
         torch.zeros(1, k, dtype=DT),
     )
-    samples = m.means[:, torch.randint(0, k, (4000,), generator=gen)] + 0.05 * torch.randn(1, 4000, 6, generator=gen, dtype=DT)
+    samples = (m.means[:, torch.randint(0, k, (4000,), generator=gen)]
+               + 0.05 * torch.randn(1, 4000, 6, generator=gen, dtype=DT))
     best_sample = posterior.mixture_log_density(samples, m).max()
     assert posterior.mixture_log_density(posterior.mixture_mode(m)[:, None], m)[0, 0] >= best_sample
 

@@ -47,7 +47,8 @@ def test_integration_and_body_twist_agree():
 def test_translate_along_z_is_the_pregrasp_offset():
     grasp = se3.se3_exp(_random_twists(4, 6))
     pre = se3.translate_along_z(grasp, -0.05)
-    torch.testing.assert_close(se3.relative_transform(grasp, pre)[:, :3, 3], torch.tensor([[0.0, 0.0, -0.05]] * 4, dtype=grasp.dtype))
+    torch.testing.assert_close(se3.relative_transform(grasp, pre)[:, :3, 3],
+                               torch.tensor([[0.0, 0.0, -0.05]] * 4, dtype=grasp.dtype))
     torch.testing.assert_close(pre[:, :3, :3], grasp[:, :3, :3])
 
 
@@ -58,7 +59,8 @@ def test_pose_distance_and_its_gripper_symmetric_version():
     torch.testing.assert_close(se3.pose_distance(pose, shifted), torch.full((3,), 0.01, dtype=pose.dtype))
     twin = se3.rotate_about_z(pose, math.pi)
     assert (se3.pose_distance(pose, twin, 0.3 / math.pi) > 0.29).all()
-    assert torch.allclose(se3.symmetric_pose_distance(pose, twin, 0.3 / math.pi), torch.zeros(3, dtype=pose.dtype), atol=1e-7)
+    assert torch.allclose(se3.symmetric_pose_distance(pose, twin, 0.3 / math.pi), torch.zeros(3, dtype=pose.dtype),
+                          atol=1e-7)
 
 
 def test_half_turn_about_z_is_exact_and_matches_the_general_rotation():

@@ -279,7 +279,8 @@ def _row(scene, method, outcome, steps):
 
 def test_runs_split_over_processes_merge_into_one_summary(tmp_path):
     config = BenchmarkConfig(output=tmp_path / "unused", scenes=2, users=["laggy"], methods=["direct"])
-    _finished_run(tmp_path / "direct", config, [_row(900000, "direct", "success", 30), _row(900001, "direct", "collision", 12)])
+    _finished_run(tmp_path / "direct", config, [_row(900000, "direct", "success", 30),
+                                                _row(900001, "direct", "collision", 12)])
     _finished_run(tmp_path / "ho", config, [_row(900000, "ho", "timeout", 150), _row(900001, "ho", "success", 50)])
     summary = merge_runs([tmp_path / "direct", tmp_path / "ho"], tmp_path / "all")
     assert [(s["method"], s["trials"], s["SR"], s["CR"], s["TOR"]) for s in summary] == [

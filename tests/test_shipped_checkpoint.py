@@ -41,7 +41,8 @@ def test_shipped_checkpoint_heads_for_the_goal_it_is_given(policy):
         displacements, towards = [], []
         for g in valid[:: max(1, len(valid) // 8)]:
             policy.reset()
-            ctx = dict(observation, **{features.GRASPS_MASK: context_mask(observation[features.GRASPS_MASK], g, "target")})
+            ctx = dict(observation,
+                       **{features.GRASPS_MASK: context_mask(observation[features.GRASPS_MASK], g, "target")})
             chunk = policy.predict_action_chunk(ctx)[0].double()  # (H, 6) body twists
             end = se3.integrate_body_twists(tcp, chunk, features.DT)[-1]
             moved = end[:3, 3] - tcp[:3, 3]
