@@ -12,12 +12,16 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the main job: shared-control demo in a clutter scene (video + plots)"),
     "scene": ("scene", "render a random clutter scene; save an image with its point cloud and grasp candidates"),
     "generate": ("generate", "expert demonstrations from the motion planner -> LeRobot v3 dataset (resumable)"),
-    "visualize-episode": ("visualize_episode", "plot one dataset episode: scene, grasps, target and executed trajectory"),
-    "evaluate": ("evaluate", "RT-V3 prior benchmarks: trajectory prediction (ADE/FDE) and closed-loop planning (SR/CR/TOR)"),
-    "benchmark-env": ("benchmark_env", "time GraspClutter-v1: steps/s, reset incl. grasp sampling, point-cloud capture"),
+    "visualize-episode": ("visualize_episode",
+                          "plot one dataset episode: scene, grasps, target and executed trajectory"),
+    "evaluate": ("evaluate",
+                 "RT-V3 prior benchmarks: trajectory prediction (ADE/FDE) and closed-loop planning (SR/CR/TOR)"),
+    "benchmark-env": ("benchmark_env",
+                      "time GraspClutter-v1: steps/s, reset incl. grasp sampling, point-cloud capture"),
     "teleop": ("teleop", "interactive shared-control grasping by keyboard, gamepad or simulated user (recorded)"),
     "study": ("study", "user study: plan a counterbalanced schedule, analyze recorded sessions (stats + box plots)"),
-    "benchmark-shared": ("benchmark_shared", "simulated users x Direct / HO / RT-V3 shared control: SR, CR, iterations (resumable)"),
+    "benchmark-shared": ("benchmark_shared",
+                         "simulated users x Direct / HO / RT-V3 / oracles: SR, CR, iterations, paired (resumable)"),
 }
 
 

@@ -23,12 +23,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output", type=Path, default=Path("outputs/benchmark_shared"),
                         help="folder for results.csv, summary.csv, summary.md, success_rates.png")
     parser.add_argument("--users", type=_names, default="noisy,laggy,mode_switching,single_dof,low_dof",
-                        help="comma-separated simulated users (ideal, noisy, laggy, mode_switching, single_dof, low_dof)")
+                        help="comma-separated simulated users "
+                             "(ideal, noisy, laggy, mode_switching, single_dof, low_dof)")
     parser.add_argument("--methods", type=_names, default="direct,ho,rtv3",
                         help="comma-separated assistance methods (direct, ho, rtv3, oracle, oracle-goal; the oracles "
                              "run RT-V3's fusion with a prior that knows every feasible goal / the true goal)")
     parser.add_argument("--seed", type=int, default=9,
-                        help="scene seed block (default 9: held out from training scenes of `rtv3 generate --seed 0..8`)")
+                        help="scene seed block (default 9, the test block: held out from training scenes of "
+                             "`rtv3 generate --seed 0..8`)")
     parser.add_argument("--goals-per-scene", "--max-grasps-per-scene", dest="goals_per_scene", type=int, default=None,
                         help="feasible goals per scene (seeded random subset; default: every feasible grasp; the "
                              "paper ran 10-20)")
@@ -50,11 +52,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="HO constants: the RT-V3 paper's translation-only baseline, our reading of the "
                              "authors' public code (rotation assistance x0.125, linear branch x0.6) or the original")
     parser.add_argument("--ood-alpha", type=float, default=None,
-                        help="RT-V3 OOD gate chi-square quantile (default 0.85, the authors'); higher trusts the prior more")
+                        help="RT-V3 OOD gate chi-square quantile (default 0.85, the authors'); "
+                             "higher trusts the prior more")
     parser.add_argument("--ood-covariance", choices=["class", "predictive"], default=None,
                         help="RT-V3 OOD gate distance under the class covariance (default) or class + user noise")
     parser.add_argument("--ood-dofs", choices=["twist", "translation"], default=None,
-                        help="RT-V3 OOD gate on the whole twist (default) or on the translation only (docs/PAPER_NOTES.md)")
+                        help="RT-V3 OOD gate on the whole twist (default) or on the translation only "
+                             "(docs/PAPER_NOTES.md)")
     parser.add_argument("--uncommanded-axes", choices=["missing", "zero"], default=None,
                         help="zero axes of a user command: missing (default; the prior fills them in) or "
                              "observations of zero velocity (the paper's reading)")

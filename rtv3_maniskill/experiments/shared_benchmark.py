@@ -41,9 +41,10 @@ import json
 import math
 import time
 import zlib
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -176,7 +177,8 @@ class BenchmarkConfig:
         is identified by its path *and* the SHA-256 of its weights, so a checkpoint replaced in
         place is not mixed with results of the old one."""
         return dict(
-            seed=self.seed, max_steps=self.max_steps, stop_on_contact=self.stop_on_contact, obs_mode=self.obs_mode, rendered_context=self.rendered_context,
+            seed=self.seed, max_steps=self.max_steps, stop_on_contact=self.stop_on_contact, obs_mode=self.obs_mode,
+            rendered_context=self.rendered_context,
             scene_type=self.scene_type, ho_variant=self.ho_variant, goals_per_scene=self.goals_per_scene,
             protocol="authors: ready-pose start, feasible goals",
             policy_path=str(policy_path.resolve()) if policy_path is not None else None,
@@ -254,7 +256,8 @@ def mcnemar_exact(wins: int, losses: int) -> float:
     return 1.0 if n == 0 else float(binomtest(int(wins), n, 0.5).pvalue)
 
 
-def paired_with_baseline(rows: Iterable[dict[str, Any]], baseline: str = "direct") -> dict[tuple[str, str], dict[str, Any]]:
+def paired_with_baseline(rows: Iterable[dict[str, Any]],
+                         baseline: str = "direct") -> dict[tuple[str, str], dict[str, Any]]:
     """Per (user, method) other than ``baseline``: the trials both ran (same scene, goal and user
     noise), ``wins`` (success where the baseline failed), ``losses`` (the reverse) and the exact
     McNemar p-value."""
@@ -339,8 +342,8 @@ def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | 
         lines += [f"Goals: {goals.get('feasible', 0)} feasible of {goals['candidates']} grasp candidates in "
                   f"{goals['scenes']} scenes (infeasible, never run: {infeasible or 'none'}).", ""]
     lines += [
-        "| User | Method | Trials | SR % (↑) | CR % (↓) | TOR % (↓) | reached % | Iter (↓) | W / L vs Direct | McNemar p "
-        "| paper SR % |",
+        "| User | Method | Trials | SR % (↑) | CR % (↓) | TOR % (↓) | reached % | Iter (↓) | W / L vs Direct "
+        "| McNemar p | paper SR % |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for s in summary:
@@ -394,7 +397,8 @@ def plot_success_rates(summary: Sequence[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
-def write_summaries(output: Path, users: Sequence[str] | None = None, methods: Sequence[str] | None = None) -> list[dict[str, Any]]:
+def write_summaries(output: Path, users: Sequence[str] | None = None,
+                    methods: Sequence[str] | None = None) -> list[dict[str, Any]]:
     """``summary.csv``, ``summary.md`` and ``success_rates.png`` from every row of ``output/results.csv``."""
     rows = read_results(output / "results.csv")
     summary = summarize(rows, users, methods)
@@ -533,18 +537,21 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
                             method.policy.set_goals(pregrasps[feasible] if method_name == "oracle" else pregrasps[[g]])
                         result = run_episode(
                             env, method, make_user(user_name, u_seed), max_steps=config.max_steps, seed=scene_seed,
-                            options=dict(target_grasp_index=g, init_qpos=READY_QPOS), stop_on_contact=config.stop_on_contact,
+                            options=dict(target_grasp_index=g, init_qpos=READY_QPOS),
+                            stop_on_contact=config.stop_on_contact,
                         )
                         counts = result.mode_counts
                         results.append(dict(
                             scene_seed=scene_seed, grasp_index=g, user=user_name, method=method_name,
-                            outcome=result.outcome, success=int(result.success), collision=int(result.collision), steps=result.steps,
+                            outcome=result.outcome, success=int(result.success), collision=int(result.collision),
+                            steps=result.steps,
                             final_distance=f"{result.final_distance:.4f}",
                             autonomous_steps=counts.get("autonomous", 0), user_only_steps=counts.get("user_only", 0),
                             user_seed=u_seed, wall_time_s=f"{time.perf_counter() - start:.2f}",
                         ))
                         wins[method_name].append(int(result.outcome == "success"))
-                        bar.set_postfix({METHOD_LABELS.get(m, m): f"{100 * np.mean(v):.0f}%" for m, v in wins.items() if v})
+                        bar.set_postfix({METHOD_LABELS.get(m, m): f"{100 * np.mean(v):.0f}%"
+                                         for m, v in wins.items() if v})
                         bar.update(1)
     finally:
         bar.close()

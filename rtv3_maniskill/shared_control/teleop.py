@@ -32,8 +32,9 @@ EE body twist; for commands meant in world-aligned axes use :func:`command_frame
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 import torch
 
@@ -111,7 +112,8 @@ class GamepadMapping:
         rt = _deadzone(max(0.0, a["right_trigger"]), self.deadzone)
         v = [lx, ly, float(b["left_bumper"]) - lt]
         w = [ry, rx, float(b["right_bumper"]) - rt]
-        return torch.tensor([self.linear_speed * x for x in v] + [self.angular_speed * x for x in w], dtype=torch.float64)
+        return torch.tensor([self.linear_speed * x for x in v] + [self.angular_speed * x for x in w],
+                            dtype=torch.float64)
 
     @staticmethod
     def events(buttons: Mapping[str, bool]) -> dict[str, bool]:
@@ -256,7 +258,8 @@ class LeRobotGamepadTwist:
         controller = getattr(self.teleop, "gamepad", None)
         joystick = getattr(controller, "joystick", None)
         if joystick is None:
-            raise RuntimeError("no pygame joystick: call connect() with a gamepad attached (Linux/Windows pygame backend)")
+            raise RuntimeError(
+                "no pygame joystick: call connect() with a gamepad attached (Linux/Windows pygame backend)")
         controller.update()
         axes, buttons = gamepad_state_from_joystick(joystick, self.axis_indices, self.button_indices, self.trigger_rest)
         self.last_events = self.mapping.events(buttons)
