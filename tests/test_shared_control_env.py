@@ -370,3 +370,21 @@ def test_cli_reports_bad_options_and_missing_checkpoint(tmp_path):
         main(["benchmark-shared", "--users", "noisy,telepath", "--output", str(tmp_path / "b")])
     with pytest.raises(SystemExit, match="no RT-V3 checkpoint"):
         main(["demo", "--policy.path", str(tmp_path / "missing"), "--output", str(tmp_path / "d")])
+
+
+def test_neoss_safety_filter_keeps_a_diving_user_out_of_the_scene():
+    # The same user drives into the table: with Direct alone the trial ends in a contact; behind the
+    # NEO damper the arm stops short of it. The benchmark names such results METHOD+neoss.
+    options = dict(target_grasp_index=0)
+    plain = SharedControlEnv(num_points=N_POINTS)
+    hit = run_episode(plain, DirectTeleoperation(*LIMITS), DivingUser(), max_steps=60, seed=5, options=options)
+    plain.close()
+    assert hit.collision
+    safe = SharedControlEnv(num_points=N_POINTS, safety_filter="neoss")
+    assert safe.base.control_mode == "pd_ee_twist_qp"
+    kept = run_episode(safe, DirectTeleoperation(*LIMITS), DivingUser(), max_steps=60, seed=5, options=options)
+    safe.close()
+    assert not kept.collision and kept.outcome == "timeout" and kept.qp_infeasible_steps == 0
+    assert kept.trajectory[-1][2, 3] > 0.0  # the TCP stays above the table top
+    with pytest.raises(ValueError, match="unknown safety filter"):
+        SharedControlEnv(num_points=N_POINTS, safety_filter="bumper")

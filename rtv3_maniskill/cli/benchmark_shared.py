@@ -62,6 +62,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--uncommanded-axes", choices=["missing", "zero"], default=None,
                         help="zero axes of a user command: missing (default; the prior fills them in) or "
                              "observations of zero velocity (the paper's reading)")
+    parser.add_argument("--safety-filter", choices=["neoss"], default=None,
+                        help="put the NEO collision damper in front of every method (the paper's 'w. NeoSS' rows; "
+                             "results are named METHOD+neoss)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--merge", type=Path, nargs="+", metavar="DIR", default=None,
                         help="run nothing: combine finished runs of disjoint users or methods (e.g. one process per "
@@ -92,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
         config = BenchmarkConfig(
             output=args.output, policy_path=args.policy_path, scenes=args.scenes, users=users, methods=methods,
             seed=args.seed, goals_per_scene=args.goals_per_scene, max_steps=args.max_steps,
-            stop_on_contact=not args.continue_after_contact,
+            stop_on_contact=not args.continue_after_contact, safety_filter=args.safety_filter,
             obs_mode=args.obs_mode, rendered_context=not args.mesh_context, scene_type=args.scene_type,
             object_source=getattr(args, "objects", "procedural"),
             ho_variant=args.ho_variant, shared_control={

@@ -48,6 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--objects", default="procedural", help="'procedural' or a folder of meshes")
     parser.add_argument("--output", type=Path, default=Path("outputs/demo"), help="folder for demo.mp4 and demo.png")
     parser.add_argument("--no-video", action="store_true", help="skip rendering the video")
+    parser.add_argument("--safety-filter", choices=["neoss"], default=None,
+                        help="put the NEO collision damper in front of both methods (the paper's 'w. NeoSS')")
 
 
 def _make_env(want_video: bool, env_kwargs: dict[str, Any]):
@@ -227,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
     args.output.mkdir(parents=True, exist_ok=True)
 
     env_kwargs = dict(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps),
-                      scene_type=args.scene_type, object_source=args.objects)
+                      scene_type=args.scene_type, object_source=args.objects, safety_filter=args.safety_filter)
     env, can_render = _make_env(not args.no_video, env_kwargs)
     options = {} if args.target_grasp is None else dict(target_grasp_index=args.target_grasp)
     try:

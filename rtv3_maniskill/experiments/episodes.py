@@ -36,6 +36,8 @@ from rtv3_maniskill.tasks.grasp_clutter import GraspClutterEnv
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 
 CONTROL_MODE = "pd_ee_twist"
+QP_CONTROL_MODE = "pd_ee_twist_qp"
+SAFETY_FILTERS = (None, "neoss")
 GRIPPER_OPEN = 1.0
 """Normalised gripper action of ``pd_ee_twist`` that holds the fingers open (0.04 m)."""
 
@@ -107,6 +109,10 @@ class SharedControlEnv(gym.Wrapper):
         method: the :class:`AssistanceMethod` (settable later via ``.method``); None = direct.
         rendered_context: in ``state_dict`` mode, replace the mesh-sampled cloud by a depth-camera
             cloud rendered once per scene (as ``rtv3 generate --context rendered`` stores it).
+        safety_filter: ``"neoss"`` puts the NEO collision damper (:class:`~rtv3_maniskill.control.neo_qp.
+            NeoSafetyFilter`, the paper's "w. NeoSS") in front of the method: the robot's twist is
+            tracked by the QP controller ``pd_ee_twist_qp``, whose damper keeps the links and hand out
+            of the table and objects (the fingers may touch the target); None = no filter.
         make_kwargs: passed to ``gym.make`` (e.g. ``num_points``, ``render_mode``, ``scene_type``).
 
     Action: user twist ``(6,)`` (or ``(1, 6)``), or None / zeros = no input. Scenes: ``reset(seed=s)``
@@ -115,9 +121,12 @@ class SharedControlEnv(gym.Wrapper):
     """
 
     def __init__(self, env: gym.Env | None = None, method: AssistanceMethod | None = None,
-                 rendered_context: bool = False, **make_kwargs: Any) -> None:
+                 rendered_context: bool = False, safety_filter: str | None = None, **make_kwargs: Any) -> None:
+        if safety_filter not in SAFETY_FILTERS:
+            raise ValueError(f"unknown safety filter {safety_filter!r}; known: {', '.join(map(str, SAFETY_FILTERS))}")
         if env is None:
-            kwargs = dict(obs_mode="state_dict", control_mode=CONTROL_MODE, reconfiguration_freq=0)
+            mode = QP_CONTROL_MODE if safety_filter else CONTROL_MODE
+            kwargs = dict(obs_mode="state_dict", control_mode=mode, reconfiguration_freq=0)
             kwargs.update(make_kwargs)
             env = gym.make(ENV_ID, **kwargs)
         elif make_kwargs:
@@ -126,8 +135,10 @@ class SharedControlEnv(gym.Wrapper):
         base = env.unwrapped
         if not isinstance(base, GraspClutterEnv):
             raise ValueError(f"SharedControlEnv needs a {ENV_ID} env, got {type(base).__name__}")
-        if base.control_mode != CONTROL_MODE:
-            raise ValueError(f"SharedControlEnv needs control_mode={CONTROL_MODE!r}, got {base.control_mode!r}")
+        wanted = QP_CONTROL_MODE if safety_filter else CONTROL_MODE
+        if base.control_mode not in (CONTROL_MODE, QP_CONTROL_MODE) or (safety_filter and base.control_mode != wanted):
+            raise ValueError(f"SharedControlEnv{' with a safety filter' if safety_filter else ''} needs "
+                             f"control_mode={wanted!r}, got {base.control_mode!r}")
         if base.num_envs != 1:
             raise ValueError(f"SharedControlEnv drives one env, got num_envs={base.num_envs}")
         if base.obs_mode not in ("state_dict", "pointcloud"):
@@ -139,8 +150,19 @@ class SharedControlEnv(gym.Wrapper):
         self._scene_seed: int | None = None
         self._context: tuple[torch.Tensor, torch.Tensor] | None = None
         self._obs: dict | None = None
+        self.safety_filter = safety_filter
+        self._filter = None
+        if safety_filter == "neoss":
+            from rtv3_maniskill.control.neo_qp import NeoSafetyFilter
+
+            self._filter = NeoSafetyFilter()
         self.gripper = GRIPPER_OPEN
         """Normalised gripper action sent with every step (1 = open, -1 = closed); stays open unless set."""
+
+    @property
+    def qp_infeasible_steps(self) -> int:
+        """Steps the safety filter stopped the arm because its QP had no solution (0 without a filter)."""
+        return 0 if self._filter is None else int(self._filter.infeasible_count)
 
     @property
     def base(self) -> Any:
@@ -164,6 +186,11 @@ class SharedControlEnv(gym.Wrapper):
             self._context = self.base.capture_point_cloud() if self.rendered_context else None
         obs = self._with_context(obs)
         self._obs = obs
+        if self._filter is not None:  # a reset rebuilds the controllers: attach again every time
+            from rtv3_maniskill.tasks.twist_controller import attach_safety_filters, target_object_index
+
+            self._filter.reset(self.base.layouts[0], target_object=target_object_index(self.env))
+            attach_safety_filters(self.env, [self._filter])
         if isinstance(self.method, SharedController):
             check_policy_fits_env(self.method.policy, self.base)
         self.method.reset()
@@ -238,6 +265,7 @@ class EpisodeResult:
         frames: ``env.render()`` images ``(H, W, 3)`` uint8 (start + one per step) if recorded.
         final_distance: pose distance to the pre-grasp at the end.
         wall_time: seconds the episode took.
+        qp_infeasible_steps: steps a safety filter stopped the arm (its QP had no solution).
     """
 
     success: bool
@@ -248,6 +276,7 @@ class EpisodeResult:
     frames: list[np.ndarray] = field(default_factory=list)
     final_distance: float = float("nan")
     wall_time: float = 0.0
+    qp_infeasible_steps: int = 0
 
     @property
     def outcome(self) -> str:
@@ -290,6 +319,7 @@ def run_episode(env: SharedControlEnv, method: AssistanceMethod | None, user: An
     if method is not None:
         env.method = method
     start = time.perf_counter()
+    infeasible_before = env.qp_infeasible_steps
     _, info = env.reset(seed=seed, options=options)
     base = env.base
     user.reset(env.user_goal())
@@ -321,4 +351,5 @@ def run_episode(env: SharedControlEnv, method: AssistanceMethod | None, user: An
     return EpisodeResult(
         success=success, collision=collision, steps=steps, trajectory=np.stack(poses), diagnostics=diagnostics,
         frames=frames, final_distance=distance, wall_time=time.perf_counter() - start,
+        qp_infeasible_steps=env.qp_infeasible_steps - infeasible_before,
     )

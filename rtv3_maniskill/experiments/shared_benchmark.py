@@ -54,19 +54,27 @@ from rtv3_maniskill.records import RecordStore, SettingsMismatch, scene_seeds, s
 
 RESULT_FIELDS = (
     "scene_seed", "grasp_index", "user", "method", "outcome", "success", "collision", "steps",
-    "final_distance", "autonomous_steps", "user_only_steps", "user_seed", "wall_time_s",
+    "final_distance", "autonomous_steps", "user_only_steps", "user_seed", "wall_time_s", "qp_infeasible_steps",
 )
 SUMMARY_FIELDS = ("user", "method", "trials", "SR", "CR", "TOR", "reached", "mean_iterations",
                   "paired_trials", "wins", "losses", "mcnemar_p")
 DEFAULT_USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
 DEFAULT_METHODS = ("direct", "ho", "rtv3")
 METHOD_LABELS = {"direct": "Direct", "ho": "HO", "rtv3": "RT-V3", "oracle": "Oracle", "oracle_goal": "Oracle (goal)"}
+def method_label(name: str) -> str:
+    """Table label of a method name: ``"direct+neoss"`` -> ``"Direct w. NeoSS"``."""
+    base, _, safety = name.partition("+")
+    label = METHOD_LABELS.get(base, base)
+    return f"{label} w. NeoSS" if safety == "neoss" else label
+
+
 PAPER_TABLE2_SR = {
     "noisy": {"rtv3": 84.1, "direct": 62.4, "ho": 42.8},
     "laggy": {"rtv3": 86.1, "direct": 80.3, "ho": 9.4},
     "mode_switching": {"rtv3": 83.3, "direct": 74.2, "ho": 18.0},
     "single_dof": {"rtv3": 69.8, "direct": 50.5, "ho": 23.1},
 }
+PAPER_TABLE2_SR["noisy"].update({"direct+neoss": 72.0, "rtv3+neoss": 82.2})  # Table II's "w. NeoSS" rows
 """The paper's Table II success rates (%) per user and method (their simulation)."""
 PAPER_DIRECT_ITERATIONS = {"noisy": 81.1, "laggy": 58.0, "mode_switching": 118.0, "single_dof": 129.0}
 GOAL_FIELDS = ("scene_seed", "grasp_index", "check")
@@ -92,6 +100,8 @@ class BenchmarkConfig:
     users: Sequence[str] = DEFAULT_USERS
     methods: Sequence[str] = DEFAULT_METHODS
     seed: int = 9
+    safety_filter: str | None = None
+    """``"neoss"``: every method runs behind the NEO collision damper (results named ``METHOD+neoss``)."""
     goals_per_scene: int | None = None
     """Feasible goals per scene (a seeded random subset); None = every feasible goal."""
     max_steps: int = 150
@@ -136,6 +146,8 @@ class BenchmarkConfig:
             raise BenchmarkError(f"max_steps must be >= 1, got {self.max_steps}")
         if self.obs_mode not in ("state_dict", "pointcloud"):
             raise BenchmarkError(f"obs_mode must be 'state_dict' or 'pointcloud', got {self.obs_mode!r}")
+        if self.safety_filter not in (None, "neoss"):
+            raise BenchmarkError(f"unknown safety filter {self.safety_filter!r}; known: neoss")
         if self.ho_variant not in VARIANTS:
             raise BenchmarkError(f"unknown HO variant {self.ho_variant!r}; known: {', '.join(VARIANTS)}")
         self.shared_control = dict(self.shared_control)
@@ -180,7 +192,7 @@ class BenchmarkConfig:
             seed=self.seed, max_steps=self.max_steps, stop_on_contact=self.stop_on_contact, obs_mode=self.obs_mode,
             rendered_context=self.rendered_context,
             scene_type=self.scene_type, ho_variant=self.ho_variant, goals_per_scene=self.goals_per_scene,
-            protocol="authors: ready-pose start, feasible goals",
+            protocol="authors: ready-pose start, feasible goals", safety_filter=self.safety_filter,
             policy_path=str(policy_path.resolve()) if policy_path is not None else None,
             policy_weights_sha256=weights_digest(policy_path) if policy_path is not None else None,
             shared_control=self._shared_control_settings() if self.uses_shared_controller else None, **self.extra,
@@ -349,7 +361,7 @@ def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | 
     for s in summary:
         paired, p = _paired_text(s)
         lines.append(
-            f"| {s['user']} | {METHOD_LABELS.get(s['method'], s['method'])} | {s['trials']} | {_fmt(s['SR'])} | "
+            f"| {s['user']} | {method_label(s['method'])} | {s['trials']} | {_fmt(s['SR'])} | "
             f"{_fmt(s['CR'])} | {_fmt(s['TOR'])} | {_fmt(s['reached'])} | {_fmt(s['mean_iterations'])} | "
             f"{paired} | {p} | {_paper_text(s)} |"
         )
@@ -381,7 +393,7 @@ def plot_success_rates(summary: Sequence[dict[str, Any]], path: Path) -> None:
     for ax, key, title in ((axes[0], "SR", "Success rate (%)"), (axes[1], "CR", "Collision rate (%)")):
         for j, m in enumerate(methods):
             values = [table[(u, m)][key] if (u, m) in table else 0.0 for u in users]
-            bars = ax.bar(x + (j - (len(methods) - 1) / 2) * width, values, width, label=METHOD_LABELS.get(m, m))
+            bars = ax.bar(x + (j - (len(methods) - 1) / 2) * width, values, width, label=method_label(m))
             for bar, v in zip(bars, values):
                 ax.annotate(f"{v:.0f}", (bar.get_x() + bar.get_width() / 2, v), ha="center", va="bottom", fontsize=7)
         ax.set_xticks(x, [u.replace("_", "-") for u in users])
@@ -501,7 +513,9 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
         env_kwargs.update(object_source=config.object_source)
     if policy is not None:
         env_kwargs.update(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps))
-    env = SharedControlEnv(rendered_context=config.rendered_context, **env_kwargs)
+    env = SharedControlEnv(rendered_context=config.rendered_context, safety_filter=config.safety_filter,
+                           **env_kwargs)
+    suffix = f"+{config.safety_filter}" if config.safety_filter else ""
     limits = controller_speed_limits(env.base)
     shared_config = config.shared_control_config(*limits)
     methods = {m: make_method(m, limits, policy=policy, ho_variant=config.ho_variant, config=shared_config)
@@ -528,7 +542,7 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
                 for user_name in config.users:
                     u_seed = user_seed(config.seed, scene_seed, g, user_name)
                     for method_name, method in methods.items():
-                        key = (scene_seed, g, user_name, method_name)
+                        key = (scene_seed, g, user_name, method_name + suffix)
                         if key in results:
                             bar.update(1)
                             continue
@@ -542,15 +556,16 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
                         )
                         counts = result.mode_counts
                         results.append(dict(
-                            scene_seed=scene_seed, grasp_index=g, user=user_name, method=method_name,
+                            scene_seed=scene_seed, grasp_index=g, user=user_name, method=method_name + suffix,
                             outcome=result.outcome, success=int(result.success), collision=int(result.collision),
                             steps=result.steps,
                             final_distance=f"{result.final_distance:.4f}",
                             autonomous_steps=counts.get("autonomous", 0), user_only_steps=counts.get("user_only", 0),
                             user_seed=u_seed, wall_time_s=f"{time.perf_counter() - start:.2f}",
+                            qp_infeasible_steps=result.qp_infeasible_steps,
                         ))
                         wins[method_name].append(int(result.outcome == "success"))
-                        bar.set_postfix({METHOD_LABELS.get(m, m): f"{100 * np.mean(v):.0f}%"
+                        bar.set_postfix({method_label(m): f"{100 * np.mean(v):.0f}%"
                                          for m, v in wins.items() if v})
                         bar.update(1)
     finally:
