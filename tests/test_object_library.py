@@ -128,12 +128,16 @@ def test_non_convex_meshes_go_through_coacd_and_broken_ones_are_skipped(tmp_path
     ring = trimesh.creation.annulus(r_min=1.5, r_max=3.0, height=2.0)
     _write_object(folder, "001", _obj_text([ring], groups=False))
     _write_object(folder, "002", _obj_text([a], groups=True).replace("v ", "v nan ", 1))
+    _write_object(folder, "003", _obj_text([trimesh.creation.box(extents=[2.0, 3.0, 6.0])], groups=True))
     objects = RandomUrdfObjectSet(folder)
     split, whole, broken = objects.load(0), objects.load(1), objects.load(2)
     assert broken is None
     assert len(split.shapes) == 2 and split.color[:3] == (0.1, 0.2, 0.3)
     assert len(whole.shapes) >= 2, "one non-convex group is decomposed with CoACD"
     assert any((tmp_path / "cache" / "coacd").iterdir())
+    # Standing on the tallest stable side: the ring lies flat, the tall box stands.
+    assert np.argmin(whole.collision_mesh().extents) == 2
+    assert np.argmax(objects.load(3).collision_mesh().extents) == 2
     for obj in (split, whole):
         _check_graspable_convex_union(obj)
     # Cached on disk: a fresh set reads the same parts back.
@@ -141,7 +145,7 @@ def test_non_convex_meshes_go_through_coacd_and_broken_ones_are_skipped(tmp_path
     for sa, sb in zip(split.shapes, again.shapes):
         np.testing.assert_allclose(sa.vertices, sb.vertices)
     rng = np.random.default_rng(0)
-    assert {objects.sample(rng).name for _ in range(10)} <= {"urdf000", "urdf001"}
+    assert {objects.sample(rng).name for _ in range(10)} <= {"urdf000", "urdf001", "urdf003"}
 
 
 def test_grasp_clutter_with_random_urdfs_is_seeded_and_has_grasps():

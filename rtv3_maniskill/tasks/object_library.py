@@ -214,7 +214,7 @@ RANDOM_URDF_MAX_WIDTH = 0.055
 """Smallest side cap (m): every object has a grasp width well inside the 8 cm opening."""
 RANDOM_URDF_MIN_WIDTH = 0.008
 _RANDOM_URDF_SETTINGS = (
-    f"v1-{RANDOM_URDF_MAX_PARTS}-{RANDOM_URDF_MAX_EXTENT}-{RANDOM_URDF_MIN_EXTENT}-{RANDOM_URDF_MAX_MIDDLE}-"
+    f"v4-{RANDOM_URDF_MAX_PARTS}-{RANDOM_URDF_MAX_EXTENT}-{RANDOM_URDF_MIN_EXTENT}-{RANDOM_URDF_MAX_MIDDLE}-"
     f"{RANDOM_URDF_MAX_WIDTH}-{RANDOM_URDF_MIN_WIDTH}"
 )
 """Part of the disk cache key: changing the normalisation rebuilds the cached objects."""
@@ -291,9 +291,9 @@ def _is_convex(vertices: np.ndarray, faces: np.ndarray) -> bool:
 
 
 def _normalising_transform(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The object frame and scale of a random_urdfs object: oriented-bounding-box axes with the
-    longest side vertical and the smallest along y (upright for packed scenes), scaled to
-    graspable VGN-like sizes; None when the object cannot be made graspable (a thin sheet)."""
+    """The frame and scale of a random_urdfs object: oriented-bounding-box axes (middle side along
+    x, smallest along y, longest along z), scaled to graspable VGN-like sizes; None when the object
+    cannot be made graspable (a thin sheet)."""
     to_obb, extents = trimesh.bounds.oriented_bounds(points)
     order = np.argsort(extents)  # smallest, middle, largest
     small, middle, large = extents[order]
@@ -314,14 +314,52 @@ def _normalising_transform(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] 
     return transform, scale
 
 
+def _upright_rotation(hulls: list[np.ndarray], meshes: list[trimesh.Trimesh]) -> np.ndarray:
+    """The tallest statically stable way to stand an object whose bounding box is axis-aligned.
+
+    Candidates: each box axis pointing up (longest first) with either sign. Stable: the object
+    must be tilted by 15 degrees or more before its centre of mass leaves the support polygon
+    (the points within 0.5 mm of the bottom). Falls back to the flattest pose.
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    volumes = np.array([m.volume for m in meshes])
+    com = (np.array([m.center_mass for m in meshes]) * volumes[:, None]).sum(axis=0) / volumes.sum()
+    points = np.concatenate(hulls)
+    extents = points.max(axis=0) - points.min(axis=0)
+    tip_angle = np.radians(15.0)
+    candidates = []
+    for axis in np.argsort(-extents):
+        for sign in (1.0, -1.0):
+            up = np.zeros(3)
+            up[axis] = sign
+            side = np.zeros(3)
+            side[(axis + 1) % 3] = 1.0
+            candidates.append(np.stack([side, np.cross(up, side), up]))  # rows: new x, y, z in old axes
+    for rotation in candidates:
+        moved = points @ rotation.T
+        bottom = moved[:, 2].min()
+        support = moved[moved[:, 2] <= bottom + 5e-4, :2]
+        try:
+            polygon = ConvexHull(support)
+        except (QhullError, ValueError):
+            continue
+        centre = rotation @ com
+        inside = -np.max(polygon.equations[:, :2] @ centre[:2] + polygon.equations[:, 2])
+        if np.arctan2(inside, centre[2] - bottom) >= tip_angle:
+            return rotation
+    return candidates[-1]
+
+
 class RandomUrdfObjectSet:
     """The random objects that ship with pybullet (``pybullet_data/random_urdfs``), no download.
 
     Each folder ``NNN/`` holds ``NNN.urdf`` and the mesh it names, an ``.obj`` that already is a
     convex decomposition (one ``o convex_i`` group per part, checked); a mesh with non-convex
-    groups goes through CoACD (cached on disk like a mesh folder's). Objects are put in an
-    upright oriented-bounding-box frame and scaled to VGN-like graspable sizes (longest side
-    5-11 cm, middle side <= 7 cm, smallest 0.8-5.5 cm); the scene protocol's 0.8-1.0 / 0.7-0.9
+    groups goes through CoACD (cached on disk like a mesh folder's). Objects are scaled to VGN-like
+    graspable sizes (oriented bounding box: longest side 5-11 cm, middle side <= 7 cm, smallest
+    0.8-5.5 cm) and stand on the tallest statically stable side of that box ("upright" for packed
+    scenes; about a third stand on their longest side); the scene protocol's 0.8-1.0 / 0.7-0.9
     jitter is applied on top by ``sample``. Objects with non-finite vertices, more than
     ``RANDOM_URDF_MAX_PARTS`` parts or sheet-like shapes are skipped: ``sample`` redraws, which
     keeps the draw uniform over the valid objects and deterministic per ``rng``. Objects are
@@ -401,14 +439,21 @@ class RandomUrdfObjectSet:
                 key = f"{_file_digest(mesh_path)}-{mesh_scale:.5f}"
                 hulls = _convex_decomposition(whole, key, self.coacd_threshold)
             hulls = [trimesh.transform_points(h, transform) for h in hulls]
-            # Re-centre on the parts themselves (CoACD's hulls differ slightly from the mesh).
-            lo, hi = np.min([h.min(axis=0) for h in hulls], axis=0), np.max([h.max(axis=0) for h in hulls], axis=0)
-            hulls = [h - [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]] for h in hulls]
             meshes = [trimesh.convex.convex_hull(h) for h in hulls]
         except Exception:  # qhull errors on degenerate (flat) parts
             return None
         if any(m.volume <= 1e-9 for m in meshes):  # degenerate parts cannot be built into the simulator
             return None
+        # Stand the object on a stable side, as tall as it stays; then footprint centre at the
+        # origin and bottom at z = 0 (on the parts themselves: CoACD's hulls differ slightly from the mesh).
+        upright = np.eye(4)
+        upright[:3, :3] = _upright_rotation(hulls, meshes)
+        hulls = [h @ upright[:3, :3].T for h in hulls]
+        lo, hi = np.min([h.min(axis=0) for h in hulls], axis=0), np.max([h.max(axis=0) for h in hulls], axis=0)
+        upright[:3, 3] = -np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+        hulls = [h + upright[:3, 3] for h in hulls]
+        for mesh in meshes:
+            mesh.apply_transform(upright)
         return hulls, trimesh.util.concatenate(meshes), scale * mesh_scale
 
     def sample(self, rng: np.random.Generator, scale: float = 1.0) -> ObjectGeometry:
