@@ -208,13 +208,13 @@ RANDOM_URDF_MAX_PARTS = 32
 RANDOM_URDF_MAX_EXTENT = 0.11
 """Longest side (m) of a normalised object at scene scale 1.0 (VGN objects: a few cm to ~10 cm)."""
 RANDOM_URDF_MIN_EXTENT = 0.05
-RANDOM_URDF_MAX_MIDDLE = 0.07
-"""Middle side cap (m): an object lying on its largest face fits between the fingers (8 cm)."""
+RANDOM_URDF_MAX_MIDDLE = 0.055
+"""Middle side cap (m): an object lying on its largest face fits between the fingers (8 cm) with room to spare."""
 RANDOM_URDF_MAX_WIDTH = 0.055
 """Smallest side cap (m): every object has a grasp width well inside the 8 cm opening."""
 RANDOM_URDF_MIN_WIDTH = 0.008
 _RANDOM_URDF_SETTINGS = (
-    f"v4-{RANDOM_URDF_MAX_PARTS}-{RANDOM_URDF_MAX_EXTENT}-{RANDOM_URDF_MIN_EXTENT}-{RANDOM_URDF_MAX_MIDDLE}-"
+    f"v5-{RANDOM_URDF_MAX_PARTS}-{RANDOM_URDF_MAX_EXTENT}-{RANDOM_URDF_MIN_EXTENT}-{RANDOM_URDF_MAX_MIDDLE}-"
     f"{RANDOM_URDF_MAX_WIDTH}-{RANDOM_URDF_MIN_WIDTH}"
 )
 """Part of the disk cache key: changing the normalisation rebuilds the cached objects."""
@@ -357,7 +357,7 @@ class RandomUrdfObjectSet:
     Each folder ``NNN/`` holds ``NNN.urdf`` and the mesh it names, an ``.obj`` that already is a
     convex decomposition (one ``o convex_i`` group per part, checked); a mesh with non-convex
     groups goes through CoACD (cached on disk like a mesh folder's). Objects are scaled to VGN-like
-    graspable sizes (oriented bounding box: longest side 5-11 cm, middle side <= 7 cm, smallest
+    graspable sizes (oriented bounding box: longest side 5-11 cm, middle side <= 5.5 cm, smallest
     0.8-5.5 cm) and stand on the tallest statically stable side of that box ("upright" for packed
     scenes; about a third stand on their longest side); the scene protocol's 0.8-1.0 / 0.7-0.9
     jitter is applied on top by ``sample``. Objects with non-finite vertices, more than
