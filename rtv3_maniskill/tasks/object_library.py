@@ -211,7 +211,7 @@ RANDOM_URDF_MIN_EXTENT = 0.05
 RANDOM_URDF_MAX_MIDDLE = 0.055
 """Middle side cap (m): an object lying on its largest face fits between the fingers (8 cm) with room to spare."""
 RANDOM_URDF_MAX_WIDTH = 0.055
-"""Smallest side cap (m): every object has a grasp width well inside the 8 cm opening."""
+"""Smallest side cap (m): every object has a grasp width well inside the 8 cm opening (implied by the middle cap)."""
 RANDOM_URDF_MIN_WIDTH = 0.008
 _RANDOM_URDF_SETTINGS = (
     f"v5-{RANDOM_URDF_MAX_PARTS}-{RANDOM_URDF_MAX_EXTENT}-{RANDOM_URDF_MIN_EXTENT}-{RANDOM_URDF_MAX_MIDDLE}-"
@@ -290,7 +290,7 @@ def _is_convex(vertices: np.ndarray, faces: np.ndarray) -> bool:
     return hull_volume > 0 and part_volume >= 0.97 * hull_volume
 
 
-def _normalising_transform(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def _normalising_transform(points: np.ndarray) -> tuple[np.ndarray, float] | None:
     """The frame and scale of a random_urdfs object: oriented-bounding-box axes (middle side along
     x, smallest along y, longest along z), scaled to graspable VGN-like sizes; None when the object
     cannot be made graspable (a thin sheet)."""
