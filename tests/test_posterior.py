@@ -512,7 +512,7 @@ def test_user_command_gives_shared_control_that_blends_towards_the_matching_clas
 
 def test_ood_gate_hands_control_to_user_for_three_steps_then_gives_it_back():
     prior = HandBuiltPrior()
-    ctrl = SharedController(prior, SharedControlConfig(ood_steps=3, adapt_user_covariance=False))
+    ctrl = SharedController(prior, SharedControlConfig.preset("paper", ood_steps=3, adapt_user_covariance=False))
     obs = make_observation()
     far = torch.tensor([[0.0, 0.0, 0.4, 0.0, 0.0, 0.0]])  # orthogonal to both classes
     near = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.0]])
@@ -611,3 +611,11 @@ def test_user_covariance_adapts_across_steps():
     s_u = ctrl.last_diagnostics.user_trans_cov[0]
     assert torch.diagonal(s_u).mean() < 0.025  # consistent user: trusted more than the initial 0.03
     assert float(torch.linalg.det(s_u)) ** (1 / 3) > 0.01
+
+
+def test_fusion_presets_tuned_is_the_default_and_paper_is_the_papers_reading():
+    assert SharedControlConfig() == SharedControlConfig.preset("tuned")
+    paper = SharedControlConfig.preset("paper", ood_steps=2)
+    assert (paper.ood_covariance, paper.ood_alpha, paper.belief_memory, paper.ood_steps) == ("class", 0.85, 0.0, 2)
+    with pytest.raises(ValueError, match="unknown fusion preset"):
+        SharedControlConfig.preset("bold")

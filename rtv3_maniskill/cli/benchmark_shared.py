@@ -51,11 +51,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         choices=["rtv3_authors", "rtv3_authors_public", "javdani2018"],
                         help="HO constants: the RT-V3 paper's translation-only baseline, our reading of the "
                              "authors' public code (rotation assistance x0.125, linear branch x0.6) or the original")
+    parser.add_argument("--fusion", choices=["tuned", "paper"], default="tuned",
+                        help="RT-V3 fusion preset: tuned (default, chosen on validation scenes: predictive gate at "
+                             "alpha 0.99, recursive goal belief) or paper (class-covariance gate at 0.85, no memory); "
+                             "the options below override single settings")
     parser.add_argument("--ood-alpha", type=float, default=None,
-                        help="RT-V3 OOD gate chi-square quantile (default 0.85, the authors'); "
+                        help="RT-V3 OOD gate chi-square quantile (tuned 0.99, paper 0.85); "
                              "higher trusts the prior more")
     parser.add_argument("--ood-covariance", choices=["class", "predictive"], default=None,
-                        help="RT-V3 OOD gate distance under the class covariance (default) or class + user noise")
+                        help="RT-V3 OOD gate distance under the class covariance (paper) or class + user noise (tuned)")
     parser.add_argument("--ood-dofs", choices=["twist", "translation"], default=None,
                         help="RT-V3 OOD gate on the whole twist (default) or on the translation only "
                              "(docs/PAPER_NOTES.md)")
@@ -98,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
             stop_on_contact=not args.continue_after_contact, safety_filter=args.safety_filter,
             obs_mode=args.obs_mode, rendered_context=not args.mesh_context, scene_type=args.scene_type,
             object_source=getattr(args, "objects", "procedural"),
-            ho_variant=args.ho_variant, shared_control={
+            ho_variant=args.ho_variant, fusion=args.fusion, shared_control={
                 key: value for key in ("ood_alpha", "ood_covariance", "ood_dofs", "uncommanded_axes")
                 if (value := getattr(args, key, None)) is not None
             },

@@ -48,6 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--objects", default="procedural", help="'procedural' or a folder of meshes")
     parser.add_argument("--output", type=Path, default=Path("outputs/demo"), help="folder for demo.mp4 and demo.png")
     parser.add_argument("--no-video", action="store_true", help="skip rendering the video")
+    parser.add_argument("--fusion", choices=["tuned", "paper"], default="tuned",
+                        help="RT-V3 fusion preset: tuned (default) or the paper's reading")
     parser.add_argument("--safety-filter", choices=["neoss"], default=None,
                         help="put the NEO collision damper in front of both methods (the paper's 'w. NeoSS')")
 
@@ -246,7 +248,10 @@ def run(args: argparse.Namespace) -> int:
           f"up to {args.max_steps} steps")
 
     limits = controller_speed_limits(base)
-    rtv3 = run_episode(env, make_method("rtv3", limits, policy=policy),
+    from rtv3_maniskill.shared_control import SharedControlConfig
+
+    fusion = SharedControlConfig.preset(args.fusion)
+    rtv3 = run_episode(env, make_method("rtv3", limits, policy=policy, config=fusion),
                        make_user(args.user, args.user_seed, pauses=args.pauses),
                        max_steps=args.max_steps, record_frames=can_render, seed=args.seed, options=options)
     goal_px = _goal_pixels(env) if can_render else None

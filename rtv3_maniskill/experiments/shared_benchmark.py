@@ -114,6 +114,8 @@ class BenchmarkConfig:
     object_source: str = "procedural"
     """GraspClutter-v1's ``object_source`` (e.g. ``"random_urdfs"``); in the fingerprint when not the default."""
     ho_variant: str = "rtv3_authors"
+    fusion: str = "tuned"
+    """RT-V3's fusion preset (``SharedControlConfig.preset``): ``"tuned"`` or ``"paper"``."""
     shared_control: dict[str, Any] = field(default_factory=dict)
     """Overrides of :class:`SharedControlConfig` fields for RT-V3 (e.g. ``{"ood_dofs": "translation"}``);
     the speed limits always come from the env's controller."""
@@ -163,8 +165,8 @@ class BenchmarkConfig:
         """The RT-V3 controller's settings: the defaults, these overrides and the env's speed limits."""
         from rtv3_maniskill.shared_control.shared_controller import SharedControlConfig
 
-        return SharedControlConfig(max_linear_speed=max_linear_speed, max_angular_speed=max_angular_speed,
-                                   **self.shared_control)
+        return SharedControlConfig.preset(self.fusion, max_linear_speed=max_linear_speed,
+                                          max_angular_speed=max_angular_speed, **self.shared_control)
 
     def _shared_control_settings(self) -> dict[str, Any]:
         """The RT-V3 controller's settings (OOD gate, user covariance, ...) minus the speed limits

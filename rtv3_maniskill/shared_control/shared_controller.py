@@ -71,14 +71,14 @@ class SharedControlConfig:
     input_threshold: float = 1e-6
     """A user twist with norm <= this counts as "no command"; an axis with ``|u_i|`` <= this
     counts as not commanded (see ``uncommanded_axes``)."""
-    ood_alpha: float = 0.85
-    """OOD gate: chi2 quantile on the squared Mahalanobis distance (3 DoF)."""
+    ood_alpha: float = 0.99
+    """OOD gate: chi2 quantile on the squared Mahalanobis distance (the paper: 0.85)."""
     ood_steps: int = 3
     """Steps after an OOD command during which the user's command is executed."""
-    ood_covariance: str = "class"
-    """Covariance of the OOD test's Mahalanobis distance: ``"class"`` (``Sigma_k``, docs/PAPER_NOTES.md's
-    "distance to the nearest class") or ``"predictive"`` (``Sigma_k + S_u``); see
-    :func:`posterior.is_out_of_distribution`."""
+    ood_covariance: str = "predictive"
+    """Covariance of the OOD test's Mahalanobis distance: ``"predictive"`` (``Sigma_k + S_u``: a
+    command is judged with the user's own noise) or ``"class"`` (``Sigma_k``, docs/PAPER_NOTES.md's
+    "distance to the nearest class", the paper's reading); see :func:`posterior.is_out_of_distribution`."""
     ood_dofs: str = "twist"
     """What the OOD test looks at: ``"twist"`` (translation and rotation) or ``"translation"``
     (docs/PAPER_NOTES.md); see :func:`posterior.is_out_of_distribution`."""
@@ -97,7 +97,7 @@ class SharedControlConfig:
     user_cov_floor: float = 0.01
     reweight_rotation_at: str = "prior"
     """See :func:`posterior.fuse_user_command` ("prior" = paper, "fused" = docs/PAPER_NOTES.md)."""
-    belief_memory: float = 0.0
+    belief_memory: float = 1.0
     """Recursive goal belief. 0 (the paper): every step's class weights are the prior's alone, the
     evidence of earlier commands is forgotten. In (0, 1]: the log-likelihood of the user's commands
     under each class is accumulated over the shared steps, decayed by this factor per step, and
@@ -108,6 +108,19 @@ class SharedControlConfig:
     """Most mean-shift iterations of the mode search (:func:`posterior.mixture_mode`)."""
     mode_search_tol: float = 1e-6
     """Stop the mode search once no iterate moves by more than this (m/s, rad/s)."""
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> SharedControlConfig:
+        """A named fusion (:data:`FUSION_PRESETS`), with ``overrides`` on top.
+
+        ``"tuned"`` (the defaults) was chosen on validation scenes so that a prior that knows the
+        scene helps every simulated user (docs/RESULTS.md, "Fusion settings"); ``"paper"`` is the
+        paper's reading: the gate under the class covariance at alpha 0.85, no memory of earlier
+        commands.
+        """
+        if name not in FUSION_PRESETS:
+            raise ValueError(f"unknown fusion preset {name!r}; known: {', '.join(FUSION_PRESETS)}")
+        return cls(**{**FUSION_PRESETS[name], **overrides})
 
     def __post_init__(self) -> None:
         check_speed_limits(self.max_linear_speed, self.max_angular_speed)
@@ -129,6 +142,13 @@ class SharedControlConfig:
         posterior.ood_threshold(self.ood_alpha)  # validates alpha
         if not 0.0 <= self.belief_memory <= 1.0:
             raise ValueError(f"belief_memory must be in [0, 1], got {self.belief_memory}")
+
+
+FUSION_PRESETS: dict[str, dict[str, Any]] = {
+    "tuned": dict(ood_covariance="predictive", ood_alpha=0.99, belief_memory=1.0),
+    "paper": dict(ood_covariance="class", ood_alpha=0.85, belief_memory=0.0),
+}
+"""Named fusion settings (:meth:`SharedControlConfig.preset`); ``"tuned"`` is the default."""
 
 
 @dataclass
