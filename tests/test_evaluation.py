@@ -346,3 +346,16 @@ def test_step0_calibration_of_a_known_gaussian():
     assert abs(float(cal["sigma_ml"][0]) - (0.01 * 0.02 * 0.05) ** (1 / 3)) < 1e-9
     far = step0_calibration(mixture, torch.full((b, 3), 5.0, dtype=torch.float64))
     assert not bool(far["covered_any"].any()) and bool((far["nll"] > cal["nll"].max()).all())
+
+
+def test_neoss_planner_drives_straight_through_the_damper(tmp_path):
+    # Table I's NeoSS row: no policy; a straight twist to the target's pre-grasp, tracked by the NEO
+    # QP whose collision damper keeps the arm out of the scene.
+    config = planning.PlanningConfig(output=tmp_path / "neoss", scenes=1, max_grasps_per_scene=1, point_cloud="mesh",
+                                     scene_type="packed", planner="neoss")
+    summary = planning.run_planning_benchmark(config, progress=False)
+    row = _trial_rows(tmp_path / "neoss")[0]
+    assert summary["trials"] == 1 and row["outcome"] in ("success", "collision", "timeout")
+    assert summary["settings"]["planner"] == "neoss" and summary["collision"] == 0
+    with pytest.raises(ValueError, match="unknown planner"):
+        planning.PlanningConfig(output=tmp_path, planner="rrt")

@@ -5,7 +5,7 @@
 * ``rtv3 evaluate planning --policy.path P [--scenes 20] [--seed 9] [--max-grasps-per-scene 2] [--output DIR]``:
   closed-loop planning in GraspClutter-v1: SR / CR / TOR (resumable).
 
-See ``rtv3_maniskill/evaluation/prediction.py`` and ``planning.py`` for the protocols.
+See ``rtv3_maniskill/experiments/prediction.py`` and ``planning.py`` for the protocols.
 """
 
 from __future__ import annotations
@@ -53,7 +53,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "target grasp's pre-grasp; success when the pose distance (rot weight 0.3/pi) is < 0.2, collision = "
         "any robot contact, timeout after 150 steps. Finished (scene, grasp) trials are skipped on a rerun.",
     )
-    plan.add_argument("--policy.path", dest="policy_path", type=Path, required=True, help="RT-V3 checkpoint folder")
+    plan.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
+                      help="RT-V3 checkpoint folder (needed unless --planner neoss)")
+    plan.add_argument("--planner", default="policy", choices=["policy", "neoss"],
+                      help="policy: the prior's most likely actions; neoss: the paper's reactive baseline, a straight "
+                           "twist to the pre-grasp through the NEO collision damper (Table I's NeoSS row)")
     plan.add_argument("--scenes", type=int, default=20, help="number of scenes")
     plan.add_argument("--seed", type=int, default=9,
                       help="scene i uses seed SEED*100000 + i (rtv3 generate's numbering): "
@@ -98,6 +102,7 @@ def _run_planning(args: argparse.Namespace) -> int:
             output=args.output, policy_path=args.policy_path, scenes=args.scenes, seed=args.seed,
             max_grasps_per_scene=None if args.max_grasps_per_scene == 0 else args.max_grasps_per_scene,
             context=args.context, point_cloud=args.point_cloud, scene_type=args.scene_type, max_steps=args.max_steps,
+            planner=args.planner,
         )
         summary = run_planning_benchmark(config)
     except (FileNotFoundError, ValueError) as err:

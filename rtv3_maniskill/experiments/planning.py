@@ -57,6 +57,7 @@ MAX_GRASPS_GUESS = 16
 OUTCOMES = ("success", "collision", "timeout")
 NO_START_POSE = "no_start_pose"
 CONTEXT_MODES = ("target", "all")
+PLANNERS = ("policy", "neoss")
 POINT_CLOUD_SOURCES = ("rendered", "mesh")
 GRIPPER_OPEN = 1.0
 """Normalised gripper command of ``pd_ee_twist`` (the Panda's ``pd_joint_pos`` gripper): open."""
@@ -152,9 +153,15 @@ class PlanningConfig:
     max_steps: int = PLANNING_MAX_STEPS
     threshold: float = PLANNING_SUCCESS_THRESHOLD
     start_pose_attempts: int = 10
+    planner: str = "policy"
+    """``"policy"``: the RT-V3 prior's most likely actions; ``"neoss"``: the paper's reactive
+    baseline, a straight twist to the target's pre-grasp through the NEO collision damper
+    (``pd_ee_twist_qp`` + ``NeoSafetyFilter``), Table I's NeoSS row."""
 
     def __post_init__(self) -> None:
         self.output = Path(self.output).expanduser()
+        if self.planner not in PLANNERS:
+            raise ValueError(f"unknown planner {self.planner!r}; expected one of {PLANNERS}")
         if self.scenes < 1:
             raise ValueError(f"scenes must be >= 1, got {self.scenes}")
         if self.max_grasps_per_scene is not None and self.max_grasps_per_scene < 1:
@@ -176,6 +183,7 @@ class PlanningConfig:
             seed=self.seed, context=self.context, point_cloud=self.point_cloud, scene_type=self.scene_type,
             max_steps=self.max_steps, threshold=self.threshold, start_pose_attempts=self.start_pose_attempts,
             policy_path=str(Path(self.policy_path).expanduser().resolve()) if self.policy_path is not None else None,
+            planner=self.planner,
         )
 
 
@@ -231,6 +239,34 @@ def scene_index(output: Path, settings: dict[str, Any]) -> RecordStore:
 # ----------------------------------------------------------------------------- running
 
 
+class StraightToPregrasp:
+    """The NeoSS baseline's command: the straight body twist ``se3_log(T_cur^-1 T_pre)`` to the nearer
+    twin of the visible grasp's pre-grasp (one grasp: ``context="target"``), clipped to the speed
+    limits; the damper in the controller keeps it out of the scene. Has the policy calls the
+    benchmark makes (``reset``, ``select_action``) and the sizes it builds the env with."""
+
+    def __init__(self, max_linear_speed: float = 0.3, max_angular_speed: float = 1.2) -> None:
+        from types import SimpleNamespace
+
+        from rtv3_maniskill.shared_control.oracle_prior import OraclePrior
+
+        self._prior = OraclePrior(max_linear_speed=max_linear_speed, max_angular_speed=max_angular_speed)
+        self.config = SimpleNamespace(num_points=features.DEFAULT_NUM_POINTS, max_grasps=features.DEFAULT_MAX_GRASPS)
+
+    def reset(self) -> None:
+        """Stateless."""
+
+    def select_action(self, observation: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``(1, 6)`` straight twist to the first visible grasp's pre-grasp."""
+        grasps = features.unflatten(features.GRASPS, observation[features.GRASPS])[0].double()
+        visible = torch.nonzero(observation[features.GRASPS_MASK][0] > 0.5).flatten()
+        if len(visible) == 0:
+            raise ValueError("the NeoSS planner needs a visible target grasp (context='target')")
+        grasp = se3.pose_to_matrix(grasps[visible[0], :3], grasps[visible[0], 3:7])
+        self._prior.set_goals(pregrasp_poses(grasp)[None])
+        return self._prior.straight_twists(observation)[:, 0].float()
+
+
 class PlanningBenchmark:
     """One ``GraspClutter-v1`` env, the planner for start poses, and the policy under test."""
 
@@ -241,6 +277,11 @@ class PlanningBenchmark:
         self.scene_seed: int | None = None
         self.planner = None
         self._cloud: tuple[torch.Tensor, torch.Tensor] | None = None
+        self.safety_filter = None
+        if config.planner == "neoss":
+            from rtv3_maniskill.control.neo_qp import NeoSafetyFilter
+
+            self.safety_filter = NeoSafetyFilter()
 
     @property
     def env(self):
@@ -262,7 +303,7 @@ class PlanningBenchmark:
         return gym.make(
             ENV_ID,
             obs_mode="state_dict",
-            control_mode="pd_ee_twist",
+            control_mode="pd_ee_twist_qp" if config.planner == "neoss" else "pd_ee_twist",
             scene_type=config.scene_type,
             num_points=int(policy.config.num_points),
             max_grasps=int(policy.config.max_grasps),
@@ -340,6 +381,11 @@ class PlanningBenchmark:
             row.update(outcome=NO_START_POSE, steps=0, wall_time_s=f"{time.perf_counter() - start_time:.2f}")
             return row
         obs, _ = self.env.reset(options=dict(reconfigure=False, init_qpos=q_start, target_grasp_index=grasp))
+        if self.config.planner == "neoss":  # a reset rebuilds the controllers: attach the damper again
+            from rtv3_maniskill.tasks.twist_controller import attach_safety_filters, target_object_index
+
+            self.safety_filter.reset(self.base.layouts[0], target_object=target_object_index(self.env))
+            attach_safety_filters(self.env, [self.safety_filter])
         self.policy.reset()
         row["start_distance"] = (
             f"{float(planning_distance(self.base.tcp_pose_matrix[0].double(), context_poses).min()):.4f}"
@@ -384,6 +430,8 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
     from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
 
     torch.set_num_threads(1)
+    if policy is None and config.planner == "neoss":
+        policy = StraightToPregrasp()
     if policy is None:
         if config.policy_path is None:
             raise ValueError("no policy: pass --policy.path (an RT-V3 checkpoint folder)")
