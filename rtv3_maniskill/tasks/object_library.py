@@ -205,16 +205,16 @@ class MeshFolderObjectSet:
 RANDOM_URDFS = "random_urdfs"
 RANDOM_URDF_MAX_PARTS = 32
 """Objects with more convex parts are skipped (slow to build; a few percent of the set)."""
-RANDOM_URDF_MAX_EXTENT = 0.11
+RANDOM_URDF_MAX_EXTENT = 0.12
 """Longest side (m) of a normalised object at scene scale 1.0 (VGN objects: a few cm to ~10 cm)."""
 RANDOM_URDF_MIN_EXTENT = 0.05
-RANDOM_URDF_MAX_MIDDLE = 0.055
+RANDOM_URDF_MAX_MIDDLE = 0.065
 """Middle side cap (m): an object lying on its largest face fits between the fingers (8 cm) with room to spare."""
 RANDOM_URDF_MAX_WIDTH = 0.055
 """Smallest side cap (m): every object has a grasp width well inside the 8 cm opening (implied by the middle cap)."""
 RANDOM_URDF_MIN_WIDTH = 0.008
 _RANDOM_URDF_SETTINGS = (
-    f"v5-{RANDOM_URDF_MAX_PARTS}-{RANDOM_URDF_MAX_EXTENT}-{RANDOM_URDF_MIN_EXTENT}-{RANDOM_URDF_MAX_MIDDLE}-"
+    f"v6-{RANDOM_URDF_MAX_PARTS}-{RANDOM_URDF_MAX_EXTENT}-{RANDOM_URDF_MIN_EXTENT}-{RANDOM_URDF_MAX_MIDDLE}-"
     f"{RANDOM_URDF_MAX_WIDTH}-{RANDOM_URDF_MIN_WIDTH}"
 )
 """Part of the disk cache key: changing the normalisation rebuilds the cached objects."""
