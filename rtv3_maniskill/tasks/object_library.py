@@ -357,7 +357,7 @@ class RandomUrdfObjectSet:
     Each folder ``NNN/`` holds ``NNN.urdf`` and the mesh it names, an ``.obj`` that already is a
     convex decomposition (one ``o convex_i`` group per part, checked); a mesh with non-convex
     groups goes through CoACD (cached on disk like a mesh folder's). Objects are scaled to VGN-like
-    graspable sizes (oriented bounding box: longest side 5-11 cm, middle side <= 5.5 cm, smallest
+    graspable sizes (oriented bounding box: longest side 5-12 cm, middle side <= 6.5 cm, smallest
     0.8-5.5 cm) and stand on the tallest statically stable side of that box ("upright" for packed
     scenes; about a third stand on their longest side); the scene protocol's 0.8-1.0 / 0.7-0.9
     jitter is applied on top by ``sample``. Objects with non-finite vertices, more than
