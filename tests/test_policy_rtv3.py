@@ -159,8 +159,12 @@ def batch(policy: RTV3Policy) -> dict:
 def test_config_windows_presets_and_validation():
     cfg = RTV3Config(device="cpu")
     assert cfg.observation_delta_indices is None  # history read from observation.state_history
-    assert RTV3Config(device="cpu", use_stored_history=False).observation_delta_indices == list(range(-7, 1))
-    assert cfg.action_delta_indices == list(range(12))
+    # the training cache (default): one row per sample, the policy cuts the windows (training_cache.py)
+    assert cfg.action_delta_indices is None
+    assert RTV3Config(device="cpu", use_stored_history=False).observation_delta_indices is None
+    windowed = RTV3Config(device="cpu", use_stored_history=False, training_cache=False)
+    assert windowed.observation_delta_indices == list(range(-7, 1))
+    assert windowed.action_delta_indices == list(range(12))
     assert cfg.reward_delta_indices is None
     assert cfg.translation_scale == 5.0 and cfg.kl_weight == 100.0 and cfg.kl_min == 0.07
     optimizer = cfg.get_optimizer_preset()
@@ -739,7 +743,8 @@ def test_lerobot_dataset_factory_and_processors_train(tmp_path):
     register_third_party_plugins()  # what lerobot-train / lerobot-eval do first
     assert get_policy_class("rtv3") is RTV3Policy
 
-    cfg = RTV3Config(device="cpu", num_points=64, max_grasps=8, use_stored_history=False)
+    # LeRobot's own windows (the default training cache: tests/test_training_cache.py)
+    cfg = RTV3Config(device="cpu", num_points=64, max_grasps=8, use_stored_history=False, training_cache=False)
     written = _write_dataset(tmp_path / "ds", cfg)
     meta = written.meta
     assert meta.total_episodes == 2 and meta.fps == ft.FPS

@@ -33,6 +33,7 @@ from rtv3_maniskill.policies.rtv3.batch import (
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.model import RTV3Model
 from rtv3_maniskill.policies.rtv3.model_card import MODEL_CARD_TEMPLATE, training_dataset_repo_id
+from rtv3_maniskill.policies.rtv3.training_cache import TrainingCache
 from rtv3_maniskill.twist_mixture import TwistMixture
 
 
@@ -48,6 +49,9 @@ class RTV3Policy(PreTrainedPolicy):
         the training dataset's repo id."""
         super().__init__(config)
         self.dataset_repo_id = training_dataset_repo_id(dataset_meta)
+        # config.training_cache: the dataset's actions / states, read on the first training batch that needs them.
+        self._cache_source = dataset_meta if config.training_cache else None
+        self._training_cache: TrainingCache | None = None
         """The training dataset's repo id, named by the saved model card (``None``: unknown)."""
         if not config.input_features:
             config.input_features = config.default_input_features()
@@ -119,7 +123,7 @@ class RTV3Policy(PreTrainedPolicy):
         queue does at an episode start.
         """
         inputs = self._training_inputs(batch)
-        actions, valid = read_actions(batch, inputs.states.shape[0], self.config.horizon)
+        actions, valid = self._training_actions(batch, inputs.states.shape[0])
         if self.training and ft.TARGET_GRASP not in batch and not self._warned_no_target:
             self._warned_no_target = True
             logging.warning(
@@ -183,8 +187,40 @@ class RTV3Policy(PreTrainedPolicy):
                       ctx.grasp_mask.to(param.device)),
         )
 
+    def training_cache(self) -> TrainingCache | None:
+        """The in-memory copy of the training dataset's actions and states (``config.training_cache``), read
+        once from the dataset LeRobot's factory handed the policy; ``None`` without one."""
+        if self._training_cache is None and self._cache_source is not None:
+            self._training_cache = TrainingCache.from_dataset_meta(self._cache_source)
+            self._cache_source = None
+        return self._training_cache
+
+    def _cached_frames(self, batch: dict[str, Tensor], what: str) -> tuple[TrainingCache, Tensor]:
+        cache = self.training_cache()
+        if cache is None or "index" not in batch:
+            raise ValueError(
+                f"training batch holds single frames ({what}) but no windows: with --policy.training_cache=true "
+                f"(the default) LeRobot loads one row per sample and the policy cuts the windows from the dataset "
+                f"it was made with, by the batch's 'index' (make the policy with make_policy(cfg, "
+                f"ds_meta=dataset.meta)); cache: {'none' if cache is None else 'yes'}, 'index' in batch: "
+                f"{'index' in batch}. Or train with --policy.training_cache=false (LeRobot windows the dataset)"
+            )
+        return cache, batch["index"]
+
+    def _training_actions(self, batch: dict[str, Tensor], batch_size: int) -> tuple[Tensor, Tensor]:
+        """``(B, H, 6)`` future actions and validity: the batch's window, or cut from the training cache."""
+        action = batch.get(ft.ACTION)
+        if isinstance(action, Tensor) and action.ndim == 2 and action.shape[-1] == 6:
+            cache, index = self._cached_frames(batch, f"'{ft.ACTION}' {tuple(action.shape)}")
+            actions, pad = cache.action_windows(index, self.config.horizon)
+            batch = {ft.ACTION: actions.to(action.device), f"{ft.ACTION}_is_pad": pad.to(action.device)}
+        return read_actions(batch, batch_size, self.config.horizon)
+
     def _training_inputs(self, batch: dict[str, Tensor]) -> RTV3Inputs:
         states = read_states(batch)
+        if states.ndim == 2 and self.config.training_cache:  # single frames: the history from the cache
+            cache, index = self._cached_frames(batch, f"'{ft.STATE}' {tuple(states.shape)}")
+            states = read_states({ft.STATE: cache.state_windows(index, self.config.n_obs_steps).to(states.device)})
         if states.ndim != 3 or states.shape[1] != self.config.n_obs_steps:
             raise ValueError(
                 f"'{ft.STATE}' has shape {tuple(states.shape)}; training needs the history "

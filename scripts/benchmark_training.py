@@ -1,0 +1,86 @@
+#!/usr/bin/env python
+"""End-to-end training throughput of ``lerobot-train --policy.type=rtv3``: old vs. new data path.
+
+Old: ``--policy.training_cache=false`` (LeRobot windows ``action`` over H = 12 frames, re-reading each
+frame's point cloud and grasps). New: the default (one row per sample, windows cut from the policy's
+in-memory training cache). Both run LeRobot's own training script on the same dataset and batch size,
+interleaved (old, new, new, old, ...) so that drifts of the machine's speed hit both alike.
+
+Samples/s of a run come from LeRobot's training log: every ``--log_freq`` steps it prints the mean
+``updt_s`` (forward, backward, optimiser) and ``data_s`` (waiting for the next batch + pre-processor)
+of those steps; one window's rate is ``batch_size / (updt_s + data_s)``. The first window (worker
+start-up, first-touch allocations) is dropped. Prints every run, the median per path and the ratio.
+
+Example (dataset: ``rtv3 generate --num-scenes 20 --grasps-per-scene 8 --num-points 512
+--output /tmp/bench_ds --seed 3 --context mesh``)::
+
+    .venv/bin/python scripts/benchmark_training.py --dataset /tmp/bench_ds --batch-size 64
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+PATHS = {"old": ["--policy.training_cache=false"], "new": []}
+WINDOW = re.compile(r"step:(\S+) .*updt_s:([0-9.]+) data_s:([0-9.]+)")
+
+
+def run_training(dataset: Path, path: str, batch_size: int, steps: int, log_freq: int,
+                 num_workers: int | None, extra: list[str]) -> list[float]:
+    """One ``lerobot-train`` run; samples/s of each logged window after the first."""
+    repo_id = json.loads((dataset / "meta" / "info.json").read_text()).get("repo_id") or "local/rtv3_grasp_clutter"
+    with tempfile.TemporaryDirectory(prefix="rtv3_bench_train_") as tmp:
+        cmd = [
+            sys.executable, "-m", "lerobot.scripts.lerobot_train", f"--dataset.repo_id={repo_id}",
+            f"--dataset.root={dataset}", "--policy.type=rtv3", "--policy.device=cpu", "--policy.push_to_hub=false",
+            f"--steps={steps}", f"--batch_size={batch_size}", f"--log_freq={log_freq}", "--save_checkpoint=false",
+            f"--output_dir={Path(tmp) / 'out'}", "--wandb.enable=false", *PATHS[path], *extra,
+        ]
+        if num_workers is not None:
+            cmd.append(f"--num_workers={num_workers}")
+        result = subprocess.run(cmd, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise RuntimeError(f"lerobot-train ({path}) failed:\n{result.stderr[-3000:]}")
+    windows = [(float(u), float(d)) for _, u, d in WINDOW.findall(result.stdout + result.stderr)]
+    if len(windows) < 2:
+        raise RuntimeError(f"lerobot-train ({path}) logged {len(windows)} windows; raise --steps")
+    return [batch_size / (u + d) for u, d in windows[1:]]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--dataset", type=Path, required=True, help="LeRobot dataset root (rtv3 generate --output)")
+    parser.add_argument("--batch-size", type=int, default=64)
+    parser.add_argument("--steps", type=int, default=30, help="training steps per run")
+    parser.add_argument("--log-freq", type=int, default=5, help="steps per measured window")
+    parser.add_argument("--rounds", type=int, default=3, help="old/new pairs, interleaved")
+    parser.add_argument("--num-workers", type=int, default=None, help="DataLoader workers (default: LeRobot's)")
+    parser.add_argument("extra", nargs="*", help="more lerobot-train flags for both paths (after --)")
+    args = parser.parse_args()
+
+    rates: dict[str, list[float]] = {"old": [], "new": []}
+    for r in range(args.rounds):
+        for path in ("old", "new") if r % 2 == 0 else ("new", "old"):
+            start = time.perf_counter()
+            windows = run_training(args.dataset, path, args.batch_size, args.steps, args.log_freq, args.num_workers,
+                                   args.extra)
+            rates[path] += windows
+            print(f"round {r} {path}: median {statistics.median(windows):7.1f} samples/s over {len(windows)} windows "
+                  f"({time.perf_counter() - start:.0f} s wall)", flush=True)
+    old, new = statistics.median(rates["old"]), statistics.median(rates["new"])
+    print(f"batch {args.batch_size}, {args.rounds} interleaved rounds, {args.steps} steps per run")
+    print(f"old (--policy.training_cache=false): {old:7.1f} samples/s  ({args.batch_size / old:.3f} s/step)")
+    print(f"new (default, training cache):       {new:7.1f} samples/s  ({args.batch_size / new:.3f} s/step)")
+    print(f"ratio new/old: {new / old:.2f}x")
+
+
+if __name__ == "__main__":
+    main()
