@@ -388,3 +388,14 @@ def test_neoss_safety_filter_keeps_a_diving_user_out_of_the_scene():
     assert kept.trajectory[-1][2, 3] > 0.0  # the TCP stays above the table top
     with pytest.raises(ValueError, match="unknown safety filter"):
         SharedControlEnv(num_points=N_POINTS, safety_filter="bumper")
+
+
+def test_results_written_before_the_safety_filter_column_still_read(tmp_path):
+    from rtv3_maniskill.experiments.shared_benchmark import RESULT_FIELDS, read_results
+
+    old = tmp_path / "results.csv"
+    row = dict(_row(900000, "direct", "success", 30), final_distance=0.05, autonomous_steps=0, user_only_steps=30,
+               user_seed=1, wall_time_s=1.0)
+    old.write_text(",".join(RESULT_FIELDS[:-1]) + "\n" + ",".join(str(row[k]) for k in RESULT_FIELDS[:-1]) + "\n")
+    (read,) = read_results(old)
+    assert read["outcome"] == "success" and read["qp_infeasible_steps"] == "0"

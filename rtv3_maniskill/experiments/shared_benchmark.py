@@ -243,10 +243,16 @@ def results_store(output: Path, settings: dict[str, Any] | None) -> RecordStore:
 
 
 def _result_rows(path: Path) -> list[dict[str, str]]:
+    """The complete rows of a ``results.csv``; one written before ``qp_infeasible_steps`` existed
+    reads with that column 0 (it can be summarised and merged, not resumed)."""
     try:
         return RecordStore.read(path, RESULT_FIELDS, _is_complete_result)
     except ValueError as err:
-        raise BenchmarkError(str(err)) from None
+        try:
+            rows = RecordStore.read(path, RESULT_FIELDS[:-1], _is_complete_result)
+        except ValueError:
+            raise BenchmarkError(str(err)) from None
+        return [dict(row, qp_infeasible_steps="0") for row in rows]
 
 
 def read_results(path: Path) -> list[dict[str, Any]]:
