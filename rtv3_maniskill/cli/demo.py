@@ -45,7 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="index of the target grasp (default: the episode's own draw)")
     parser.add_argument("--max-steps", type=int, default=150, help="control steps (20 Hz)")
     parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
-    parser.add_argument("--objects", default="procedural", help="'procedural' or a folder of meshes")
+    parser.add_argument("--objects", default="procedural",
+                        help="'procedural', 'random_urdfs' (pybullet's meshes), 'procedural+random_urdfs' "
+                             "or a folder of meshes")
     parser.add_argument("--output", type=Path, default=Path("outputs/demo"), help="folder for demo.mp4 and demo.png")
     parser.add_argument("--no-video", action="store_true", help="skip rendering the video")
     parser.add_argument("--fusion", choices=["tuned", "paper"], default="tuned",

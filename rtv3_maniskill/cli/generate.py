@@ -19,7 +19,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="scene i uses seed SEED*100000 + i")
     parser.add_argument("--workers", type=int, default=1, help="parallel CPU worker processes")
     parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
-    parser.add_argument("--objects", default="procedural", help="'procedural' or a folder of meshes")
+    parser.add_argument("--objects", default="procedural",
+                        help="'procedural', 'random_urdfs' (pybullet's meshes), 'procedural+random_urdfs' "
+                             "or a folder of meshes")
     parser.add_argument("--grasps-per-scene", type=int, default=None, help="cap on targets per scene (default all)")
     parser.add_argument("--num-points", type=int, default=512,
                         help="points per stored cloud (rendered workspace clouds at 7.5 mm hold ~150-450)")

@@ -10,7 +10,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="scene seed (same seed, same scene)")
     parser.add_argument("--scene-type", default="pile", choices=["pile", "packed", "mixed"])
     parser.add_argument("--num-objects", type=int, default=None, help="objects (default: Poisson(4)+1)")
-    parser.add_argument("--objects", default="procedural", help="'procedural' or a folder of .obj/.stl/.glb meshes")
+    parser.add_argument("--objects", default="procedural",
+                        help="'procedural', 'random_urdfs' (pybullet's meshes), 'procedural+random_urdfs' "
+                             "or a folder of .obj/.stl/.glb meshes")
     parser.add_argument("--output", type=Path, default=Path("outputs/scene.png"), help="PNG to write")
 
 
