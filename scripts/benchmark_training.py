@@ -1,10 +1,13 @@
 #!/usr/bin/env python
 """End-to-end training throughput of ``lerobot-train --policy.type=rtv3``: old vs. new data path.
 
-Old: ``--policy.training_cache=false`` (LeRobot windows ``action`` over H = 12 frames, re-reading each
-frame's point cloud and grasps). New: the default (one row per sample, windows cut from the policy's
-in-memory training cache). Both run LeRobot's own training script on the same dataset and batch size,
-interleaved (old, new, new, old, ...) so that drifts of the machine's speed hit both alike.
+Old: ``--baseline COMMIT``'s code (e.g. the commit before the training cache: LeRobot windows ``action``
+over H = 12 frames, re-reading each frame's point cloud and grasps), or without ``--baseline`` this code
+with ``--policy.training_cache=false`` (the data path alone). New: this tree with its defaults (one row
+per sample, windows cut from the policy's in-memory training cache). Both run LeRobot's own training
+script on the same dataset and batch size, with 1 data worker and 1 thread each by default (as the
+earlier measurement in docs/RESULTS.md), interleaved (old, new, new, old, ...) so that drifts of the
+machine's speed hit both alike.
 
 Samples/s of a run come from LeRobot's training log: every ``--log_freq`` steps it prints the mean
 ``updt_s`` (forward, backward, optimiser) and ``data_s`` (waiting for the next batch + pre-processor)
@@ -14,13 +17,14 @@ start-up, first-touch allocations) is dropped. Prints every run, the median per 
 Example (dataset: ``rtv3 generate --num-scenes 20 --grasps-per-scene 8 --num-points 512
 --output /tmp/bench_ds --seed 3 --context mesh``)::
 
-    .venv/bin/python scripts/benchmark_training.py --dataset /tmp/bench_ds --batch-size 64
+    .venv/bin/python scripts/benchmark_training.py --dataset /tmp/bench_ds --batch-size 64 --baseline 735c219
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import statistics
 import subprocess
@@ -30,11 +34,13 @@ import time
 from pathlib import Path
 
 PATHS = {"old": ["--policy.training_cache=false"], "new": []}
+BASELINE_SRC: Path | None = None
+"""With --baseline: the extracted ``rtv3_maniskill`` package of that commit, put first on the old runs' path."""
 WINDOW = re.compile(r"step:(\S+) .*updt_s:([0-9.]+) data_s:([0-9.]+)")
 
 
 def run_training(dataset: Path, path: str, batch_size: int, steps: int, log_freq: int,
-                 num_workers: int | None, extra: list[str]) -> list[float]:
+                 num_workers: int | None, threads: int | None, extra: list[str]) -> list[float]:
     """One ``lerobot-train`` run; samples/s of each logged window after the first."""
     repo_id = json.loads((dataset / "meta" / "info.json").read_text()).get("repo_id") or "local/rtv3_grasp_clutter"
     with tempfile.TemporaryDirectory(prefix="rtv3_bench_train_") as tmp:
@@ -46,7 +52,12 @@ def run_training(dataset: Path, path: str, batch_size: int, steps: int, log_freq
         ]
         if num_workers is not None:
             cmd.append(f"--num_workers={num_workers}")
-        result = subprocess.run(cmd, capture_output=True, text=True)
+        env = dict(os.environ, **({"OMP_NUM_THREADS": str(threads)} if threads else {}))
+        if path == "old" and BASELINE_SRC is not None:  # the whole old code, with its own default data path
+            env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(BASELINE_SRC), env.get("PYTHONPATH")]))
+            cmd = [c for c in cmd if c not in PATHS["old"]]
+        # cwd: a neutral folder (python -m puts the working directory first on the path)
+        result = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp)
     if result.returncode != 0:
         raise RuntimeError(f"lerobot-train ({path}) failed:\n{result.stderr[-3000:]}")
     windows = [(float(u), float(d)) for _, u, d in WINDOW.findall(result.stdout + result.stderr)]
@@ -62,24 +73,45 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=30, help="training steps per run")
     parser.add_argument("--log-freq", type=int, default=5, help="steps per measured window")
     parser.add_argument("--rounds", type=int, default=3, help="old/new pairs, interleaved")
-    parser.add_argument("--num-workers", type=int, default=None, help="DataLoader workers (default: LeRobot's)")
+    parser.add_argument("--num-workers", type=int, default=1,
+                        help="DataLoader workers (--num_workers; -1: LeRobot's default, 4)")
+    parser.add_argument("--threads", type=int, default=1, help="OMP_NUM_THREADS of the training process (0: unset)")
+    parser.add_argument("--baseline", default=None,
+                        help="git commit whose rtv3_maniskill runs the old path (e.g. the commit before the training "
+                             "cache); default: this code with --policy.training_cache=false")
     parser.add_argument("extra", nargs="*", help="more lerobot-train flags for both paths (after --)")
     args = parser.parse_args()
 
+    global BASELINE_SRC
+    tmp = tempfile.TemporaryDirectory(prefix="rtv3_bench_baseline_")
+    if args.baseline:
+        repo = Path(__file__).resolve().parents[1]
+        archive = subprocess.run(["git", "-C", str(repo), "archive", args.baseline, "rtv3_maniskill"], check=True,
+                                 capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", tmp.name], input=archive, check=True)
+        BASELINE_SRC = Path(tmp.name)
+        probe = subprocess.run([sys.executable, "-c", "import rtv3_maniskill; print(rtv3_maniskill.__file__)"],
+                               capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=tmp.name),
+                               cwd=tempfile.gettempdir())
+        if not probe.stdout.startswith(tmp.name):
+            raise RuntimeError(f"the baseline package does not shadow the installed one: {probe.stdout}{probe.stderr}")
     rates: dict[str, list[float]] = {"old": [], "new": []}
     for r in range(args.rounds):
         for path in ("old", "new") if r % 2 == 0 else ("new", "old"):
             start = time.perf_counter()
-            windows = run_training(args.dataset, path, args.batch_size, args.steps, args.log_freq, args.num_workers,
-                                   args.extra)
+            windows = run_training(args.dataset, path, args.batch_size, args.steps, args.log_freq,
+                                   None if args.num_workers < 0 else args.num_workers, args.threads, args.extra)
             rates[path] += windows
             print(f"round {r} {path}: median {statistics.median(windows):7.1f} samples/s over {len(windows)} windows "
                   f"({time.perf_counter() - start:.0f} s wall)", flush=True)
     old, new = statistics.median(rates["old"]), statistics.median(rates["new"])
-    print(f"batch {args.batch_size}, {args.rounds} interleaved rounds, {args.steps} steps per run")
-    print(f"old (--policy.training_cache=false): {old:7.1f} samples/s  ({args.batch_size / old:.3f} s/step)")
-    print(f"new (default, training cache):       {new:7.1f} samples/s  ({args.batch_size / new:.3f} s/step)")
+    print(f"batch {args.batch_size}, {args.rounds} interleaved rounds, {args.steps} steps per run, "
+          f"num_workers {args.num_workers}, OMP_NUM_THREADS {args.threads or 'unset'}")
+    label = f"commit {args.baseline}" if args.baseline else "--policy.training_cache=false"
+    print(f"old ({label}): {old:7.1f} samples/s  ({args.batch_size / old:.3f} s/step)")
+    print(f"new (this tree, defaults): {new:7.1f} samples/s  ({args.batch_size / new:.3f} s/step)")
     print(f"ratio new/old: {new / old:.2f}x")
+    tmp.cleanup()
 
 
 if __name__ == "__main__":

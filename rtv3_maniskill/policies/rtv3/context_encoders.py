@@ -112,13 +112,43 @@ class GraspEncoder(nn.Module):
         """``grasp_feat (B, M, F)`` EE-frame grasp features, ``valid (B, M)`` -> ``h_grasp (B, dim)``."""
         grasp_feat, valid = compact_valid_rows(grasp_feat, valid)
         tokens = self.embed(grasp_feat)
-        if tokens.shape[1] > 0:
+        if tokens.shape[1] > 0 and self.training:
+            tokens = self._encode_real_tokens(tokens, valid)
+        elif tokens.shape[1] > 0:
             # A fully masked row would give NaN attention; such rows are ignored by the decoder anyway.
             any_valid = valid.any(1, keepdim=True)
             pad = ~valid & any_valid
             # No padding left (one sample, or equal counts): the unmasked kernel is faster, same result.
             tokens = self.encoder(tokens, src_key_padding_mask=pad if bool(pad.any()) else None)
         return self.decoder(tokens, valid, h_dynamics)
+
+
+    def _encode_real_tokens(self, tokens: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """``self.encoder`` (pre-norm layers + final norm) computed on the real tokens only: norms, projections
+        and feed-forward run on the packed real rows, attention on the padded layout with the padding masked.
+
+        Training path: in a batch with grasp-subset augmentation most rows are padding (the width is the
+        largest set). The real tokens get the same function as from ``self.encoder`` with
+        ``src_key_padding_mask``; padded rows come back as zeros (the decoder never reads them)."""
+        batch, width, dim = tokens.shape
+        rows = valid.reshape(-1).nonzero().squeeze(1)
+        x = tokens.reshape(batch * width, dim).index_select(0, rows)
+        # a sample without real grasps attends over its (zero) rows instead of nothing (no NaN anywhere)
+        attend = (valid | ~valid.any(1, keepdim=True))[:, None, None, :]
+        for layer in self.encoder.layers:
+            attn = layer.self_attn
+            heads = attn.num_heads
+            qkv = F.linear(layer.norm1(x), attn.in_proj_weight, attn.in_proj_bias)
+            qkv = qkv.new_zeros(batch * width, 3 * dim).index_copy(0, rows, qkv)
+            qkv = qkv.view(batch, width, 3, heads, dim // heads).permute(2, 0, 3, 1, 4)
+            out = F.scaled_dot_product_attention(qkv[0], qkv[1], qkv[2], attn_mask=attend,
+                                                 dropout_p=attn.dropout if self.training else 0.0)
+            out = out.transpose(1, 2).reshape(batch * width, dim).index_select(0, rows)
+            x = x + layer.dropout1(attn.out_proj(out))
+            x = x + layer.dropout2(layer.linear2(layer.dropout(layer.activation(layer.linear1(layer.norm2(x))))))
+        if self.encoder.norm is not None:
+            x = self.encoder.norm(x)
+        return tokens.new_zeros(batch * width, dim).index_copy(0, rows, x).view(batch, width, dim)
 
 
 class PointCloudEncoder(nn.Module):

@@ -218,14 +218,16 @@ class RTV3Policy(PreTrainedPolicy):
 
     def _training_inputs(self, batch: dict[str, Tensor]) -> RTV3Inputs:
         states = read_states(batch)
-        if states.ndim == 2 and self.config.training_cache:  # single frames: the history from the cache
+        if states.ndim == 2 and self.config.training_cache and "index" in batch:  # single frames: cut the history
             cache, index = self._cached_frames(batch, f"'{ft.STATE}' {tuple(states.shape)}")
             states = read_states({ft.STATE: cache.state_windows(index, self.config.n_obs_steps).to(states.device)})
         if states.ndim != 3 or states.shape[1] != self.config.n_obs_steps:
             raise ValueError(
                 f"'{ft.STATE}' has shape {tuple(states.shape)}; training needs the history "
                 f"(B, {self.config.n_obs_steps}, {ft.STATE_DIM}): the dataset's '{ft.STATE_HISTORY}', or, for a "
-                f"dataset without it, --policy.use_stored_history=false (LeRobot then windows '{ft.STATE}')"
+                f"dataset without it, the training cache (--policy.training_cache=true, a policy made with the "
+                f"dataset's metadata and batches with LeRobot's 'index') or --policy.use_stored_history=false "
+                f"--policy.training_cache=false (LeRobot then windows '{ft.STATE}')"
             )
         context = read_context(batch, self.config.num_points, self.config.max_grasps)
         _check_batch(states.shape[0], context.batch_size)

@@ -113,12 +113,14 @@ class FlatPoints:
         return self.permute(torch.sort(key, stable=True).indices, order)
 
 
-def _patch_layout(batch: torch.Tensor, batch_size: int, patch_size: int) -> tuple[torch.Tensor, int]:
+def _patch_layout(batch: torch.Tensor, batch_size: int, patch_size: int,
+                  counts: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
     """Destination rows of each point when every sample is padded to a multiple of ``patch_size``.
 
-    Returns ``(dest (L,), total_rows)``; patches never mix samples.
+    Returns ``(dest (L,), total_rows)``; patches never mix samples. ``counts``: points per sample, if known.
     """
-    counts = torch.bincount(batch, minlength=batch_size)
+    if counts is None:
+        counts = torch.bincount(batch, minlength=batch_size)
     padded = (counts + patch_size - 1) // patch_size * patch_size
     start_in = torch.cumsum(counts, 0) - counts
     start_out = torch.cumsum(padded, 0) - padded
@@ -148,7 +150,11 @@ class PatchAttention(nn.Module):
             if full < length:
                 parts.append(self._attend(qkv[full:], length - full))
             return self.proj(torch.cat(parts) if len(parts) > 1 else parts[0])
-        dest, total = _patch_layout(batch, batch_size, p)
+        counts = torch.bincount(batch, minlength=batch_size)
+        # Where every sample fits in one patch (the coarser stages), each sample is one patch whatever its
+        # padded length: pad to the longest sample instead of patch_size (the same attention, less padding).
+        p = min(p, int(counts.max()))
+        dest, total = _patch_layout(batch, batch_size, p, counts)
         qkv = qkv.new_zeros(total, 3 * dim).index_copy_(0, dest, qkv)
         valid = torch.zeros(total, dtype=torch.bool, device=feat.device).index_fill_(0, dest, True)
         attn_mask = valid.view(total // p, 1, 1, p)  # every patch holds >= 1 real point
