@@ -39,6 +39,7 @@ import csv
 import hashlib
 import json
 import math
+import shutil
 import time
 import zlib
 from collections.abc import Iterable, Sequence
@@ -481,6 +482,9 @@ def merge_runs(sources: Sequence[Path], output: Path) -> list[dict[str, Any]]:
             rows.append(row)
     output.mkdir(parents=True, exist_ok=True)
     (output / "config.json").write_text(json.dumps(settings, indent=2))
+    goals = [folder / "goals.csv" for folder in sources if (folder / "goals.csv").is_file()]
+    if goals:  # the goal checks of the scenes (the same in every run of these settings)
+        shutil.copyfile(goals[0], output / "goals.csv")
     with (output / "results.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, RESULT_FIELDS)
         writer.writeheader()
