@@ -75,7 +75,6 @@ def test_lerobot_train_resumes_from_its_last_checkpoint(tmp_path):
     resume = train + [f"--config_path={last / 'train_config.json'}", "--resume=true", "--steps=3"]
     run = subprocess.run(resume, capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
     assert run.returncode == 0, run.stderr[-3000:]
-    assert "Resuming" in run.stdout + run.stderr or "resum" in (run.stdout + run.stderr).lower()
     saved = json.loads((out / "checkpoints" / "last" / "training_state" / "training_step.json").read_text())
     assert saved["step"] == 3
     resumed = RTV3Policy.from_pretrained(out / "checkpoints" / "last" / "pretrained_model")

@@ -49,10 +49,10 @@ class RTV3Policy(PreTrainedPolicy):
         the training dataset's repo id."""
         super().__init__(config)
         self.dataset_repo_id = training_dataset_repo_id(dataset_meta)
+        """The training dataset's repo id, named by the saved model card (``None``: unknown)."""
         # config.training_cache: the dataset's actions / states, read on the first training batch that needs them.
         self._cache_source = dataset_meta if config.training_cache else None
         self._training_cache: TrainingCache | None = None
-        """The training dataset's repo id, named by the saved model card (``None``: unknown)."""
         if not config.input_features:
             config.input_features = config.default_input_features()
         if not config.output_features:
