@@ -399,3 +399,25 @@ def test_results_written_before_the_safety_filter_column_still_read(tmp_path):
     old.write_text(",".join(RESULT_FIELDS[:-1]) + "\n" + ",".join(str(row[k]) for k in RESULT_FIELDS[:-1]) + "\n")
     (read,) = read_results(old)
     assert read["outcome"] == "success" and read["qp_infeasible_steps"] == "0"
+
+
+def test_trials_start_at_the_ready_pose_and_infeasible_goals_are_never_run(tmp_path, env):
+    from rtv3_maniskill.datasets.panda_model import PandaKinematics
+    from rtv3_maniskill.experiments.shared_benchmark import GOAL_FIELDS, trial_options
+    from rtv3_maniskill.records import RecordStore
+    from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
+
+    # Scene 800000 has candidates without collision-free IK at the pre-grasp or with a blocked approach.
+    config = BenchmarkConfig(output=tmp_path, scenes=1, seed=8, users=["ideal"], methods=["direct"], max_steps=2)
+    run_benchmark(config, progress=False)
+    checks = {int(r["grasp_index"]): r["check"] for r in RecordStore.read(tmp_path / "goals.csv", GOAL_FIELDS)}
+    infeasible = {g for g, c in checks.items() if c != "feasible"}
+    assert infeasible, "the scene was chosen for an infeasible candidate"
+    run = {int(r["grasp_index"]) for r in _rows(tmp_path / "results.csv")}
+    assert run == set(checks) - infeasible
+    assert "infeasible, never run" in (tmp_path / "summary.md").read_text()
+    # Every trial resets the arm to the ready pose.
+    result = run_episode(env, DirectTeleoperation(*LIMITS), make_user("ideal"), max_steps=1, seed=800000,
+                         options=trial_options(min(run)))
+    ready = PandaKinematics().forward_kinematics(READY_QPOS)
+    np.testing.assert_allclose(result.trajectory[0], ready, atol=2e-3)

@@ -495,6 +495,13 @@ def merge_runs(sources: Sequence[Path], output: Path) -> list[dict[str, Any]]:
 # ----------------------------------------------------------------------------- the run
 
 
+def trial_options(grasp_index: int) -> dict[str, Any]:
+    """Reset options of one trial: its target, and the arm at the Panda ready pose."""
+    from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
+
+    return dict(target_grasp_index=int(grasp_index), init_qpos=READY_QPOS)
+
+
 def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = True) -> list[dict[str, Any]]:
     """Run (or resume) the benchmark; returns the summary rows. ``policy`` overrides ``policy_path``."""
     import torch
@@ -504,7 +511,6 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     from rtv3_maniskill.experiments.goals import check_scene_goals
     from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT, load_policy
     from rtv3_maniskill.shared_control.simulated_users import make_user
-    from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
 
     torch.set_num_threads(1)
     output = config.output
@@ -565,7 +571,7 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
                             method.policy.set_goals(pregrasps[feasible] if method_name == "oracle" else pregrasps[[g]])
                         result = run_episode(
                             env, method, make_user(user_name, u_seed), max_steps=config.max_steps, seed=scene_seed,
-                            options=dict(target_grasp_index=g, init_qpos=READY_QPOS),
+                            options=trial_options(g),
                             stop_on_contact=config.stop_on_contact,
                         )
                         counts = result.mode_counts
