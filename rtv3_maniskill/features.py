@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 
 FPS = 20
-"""Control and logging rate (docs/PAPER_NOTES.md): dt = 0.05 s."""
+"""Control and logging rate (docs/PAPER_DETAILS.md): dt = 0.05 s."""
 DT = 1.0 / FPS
 HISTORY_STEPS = 8
 """T: past steps including the current one."""

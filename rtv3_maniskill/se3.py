@@ -260,9 +260,9 @@ def matrix_to_euler_xyz(rot: torch.Tensor) -> torch.Tensor:
 
 
 PLANNING_ROT_WEIGHT = 0.3 / math.pi
-"""Rotation weight of the trajectory/planning pose distance (docs/PAPER_NOTES.md, metrics)."""
+"""Rotation weight of the trajectory/planning pose distance (docs/PAPER_DETAILS.md, metrics)."""
 SHARED_CONTROL_ROT_WEIGHT = 0.6 / math.pi
-"""Rotation weight of the shared-control success distance (docs/PAPER_NOTES.md, metrics)."""
+"""Rotation weight of the shared-control success distance (docs/PAPER_DETAILS.md, metrics)."""
 
 
 def pose_distance(

@@ -23,9 +23,9 @@
 # the goal-dependence test (tests/test_shipped_checkpoint.py).
 # Stage 3 of the shipped weights ran on top of them from the 2,810-trajectory data/train this
 # script generates (scenes 100000..100299 with the current planner): checkpoint 300 of a 900-step run
-# (SR and CR of 300, 600 and 900 compared on planning and shared control; see README).
+# (SR and CR of 300, 600 and 900 compared on planning and shared control at the time).
 # Environment: STEPS1, STEPS2, STEPS3, BATCH trade time for quality; STEM=1 trains with the point
-# encoder's stem pooling (the config default since session 8; the shipped weights have 0).
+# encoder's stem pooling (the config default today; the shipped weights have 0).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 STEPS1=${STEPS1:-2000}

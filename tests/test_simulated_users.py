@@ -1,4 +1,4 @@
-"""Simulated users (paper appendix "Simulated User", docs/PAPER_NOTES.md)."""
+"""Simulated users (paper appendix "Simulated User", docs/PAPER_DETAILS.md)."""
 
 from __future__ import annotations
 

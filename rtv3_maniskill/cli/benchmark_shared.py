@@ -62,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="RT-V3 OOD gate distance under the class covariance (paper) or class + user noise (tuned)")
     parser.add_argument("--ood-dofs", choices=["twist", "translation"], default=None,
                         help="RT-V3 OOD gate on the whole twist (default) or on the translation only "
-                             "(docs/PAPER_NOTES.md)")
+                             "(docs/PAPER_DETAILS.md)")
     parser.add_argument("--uncommanded-axes", choices=["missing", "zero"], default=None,
                         help="zero axes of a user command: missing (default; the prior fills them in) or "
                              "observations of zero velocity (the paper's reading)")

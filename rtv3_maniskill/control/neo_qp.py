@@ -1,6 +1,6 @@
 """NEO-style reactive QP twist controller and collision safety filter (NeoSS) for the Panda.
 
-Haviland & Corke's NEO, as the RT-V3 authors use it (docs/PAPER_NOTES.md, "Asynchronous Shared
+Haviland & Corke's NEO, as the RT-V3 authors use it (docs/PAPER_DETAILS.md, "Asynchronous Shared
 Control"): each step the executed TCP body twist ``a = [v, w]`` becomes a pose target
 ``T_cur Exp(a dt)``; a quadratic program finds the arm's joint velocities that reach it, with a
 slack on the task, joint position and velocity limits, NEO's manipulability term and velocity
@@ -57,7 +57,7 @@ FINGER_GEOMETRY_PREFIXES = ("panda_leftfinger", "panda_rightfinger")
 
 @dataclass(frozen=True)
 class NeoConfig:
-    """Settings of the QP (authors' values where published, docs/PAPER_NOTES.md).
+    """Settings of the QP (authors' values where published, docs/PAPER_DETAILS.md).
 
     Units: m, rad, s. ``influence_distance``/``stop_distance``/``collision_gain``: the collision
     velocity damper (0.4 m, 0.05 m, 1.0); ``joint_*``: the joint-limit damper (NEO's 0.9 rad,

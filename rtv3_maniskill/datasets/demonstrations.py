@@ -8,7 +8,7 @@ For each grasp candidate of a scene (paper, "Simulation Setup and Data Collectio
 2. an OMPL/Pinocchio plan to the target's pre-grasp, and a check that the straight 5 cm
    approach to the grasp is feasible (``rtv3_maniskill.datasets.planner``);
 3. execution in ``GraspClutter-v1`` at 20 Hz with ``pd_joint_pos_vel`` control, then
-   ``HOLD_STEPS`` steps holding the final pose (the model learns to stop, docs/PAPER_NOTES.md). With
+   ``HOLD_STEPS`` steps holding the final pose (the model learns to stop, docs/PAPER_DETAILS.md). With
    ``end_at="pregrasp"`` (the paper's protocol: trajectories and users target the
    pre-grasp; the final approach is a separate user action) the demonstration ends at the
    pre-grasp; with ``end_at="grasp"`` the approach is executed too;
@@ -78,7 +78,7 @@ class Episode:
 
 START_NOISE_STD = 0.6 * np.array([0.1, 0.04, 0.1, 0.04, 0.1, 0.1, 0.1])
 """Per-joint standard deviation of the start distribution, as a fraction of each joint's range
-(docs/PAPER_NOTES.md, "Authors' benchmark protocol")."""
+(docs/PAPER_DETAILS.md, "Authors' benchmark protocol")."""
 
 
 def random_start_configuration(rng: np.random.Generator, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -170,7 +170,7 @@ class DemonstrationRecorder:
                 break
         if q_start is None:
             return "no_start_pose"
-        # Parallel-jaw symmetry: aim for the twin closer to the start orientation (docs/PAPER_NOTES.md).
+        # Parallel-jaw symmetry: aim for the twin closer to the start orientation (docs/PAPER_DETAILS.md).
         grasp = canonicalize_symmetric(grasp_set.poses[grasp_index : grasp_index + 1],
                                        self.planner.forward_kinematics(q_start))[0]
         pregrasp = se3.translate_along_z(torch.from_numpy(grasp), -PREGRASP_DISTANCE).numpy()

@@ -84,7 +84,7 @@ def end_at_pregrasp(state: np.ndarray, action: np.ndarray, pregrasp_step: int,
                     hold_steps: int = HOLD_STEPS) -> tuple[np.ndarray, np.ndarray]:
     """Cut a staged episode that goes on to the grasp at its pre-grasp and pad it with
     ``hold_steps`` copies of the pre-grasp state at rest (zero twist and joint velocities;
-    docs/PAPER_NOTES.md: demonstrations are padded with copies of the final pose).
+    docs/PAPER_DETAILS.md: demonstrations are padded with copies of the final pose).
 
     Args:
         state: ``(S, 27)`` staged states; action: ``(S, 6)`` realised twists.

@@ -1,4 +1,4 @@
-"""Which grasp candidates can be a trial's goal (docs/PAPER_NOTES.md, "Authors' benchmark protocol").
+"""Which grasp candidates can be a trial's goal (docs/PAPER_DETAILS.md, "Authors' benchmark protocol").
 
 The authors sample feasible grasps only. A candidate is a *feasible goal* when the arm can stand
 at its pre-grasp without touching anything (a collision-free IK solution) and can then move

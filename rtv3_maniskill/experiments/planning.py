@@ -1,5 +1,5 @@
 """Closed-loop planning benchmark of the RT-V3 prior (paper Sec. VI-B "Planning in the Simulation
-Environment", Table I right half; docs/PAPER_NOTES.md "Metrics").
+Environment", Table I right half; docs/PAPER_DETAILS.md "Metrics").
 
 Protocol:
 
@@ -20,7 +20,7 @@ Protocol:
 * outcome per trial (exclusive, so SR + CR + TOR = 1): ``collision`` at the first step with
   any robot contact (the env's ``info["collision"]``), else ``success`` at the first step whose
   planning distance to a context grasp's pre-grasp, or its pi-about-z twin, is below 0.2
-  (the paper's pose distance with rotation weight 0.3/pi, docs/PAPER_NOTES.md "Metrics"), else
+  (the paper's pose distance with rotation weight 0.3/pi, docs/PAPER_DETAILS.md "Metrics"), else
   ``timeout`` after 150 steps (7.5 s). Trials without a collision-free start pose are logged
   as ``no_start_pose`` and left out of the rates.
 
@@ -47,7 +47,7 @@ from rtv3_maniskill.features import PREGRASP_DISTANCE
 from rtv3_maniskill.records import SCENE_SEED_STRIDE, RecordStore, scene_seeds, select_targets
 
 PLANNING_SUCCESS_THRESHOLD = 0.2
-"""Pose distance (m + (0.3/pi) rad, L1) below which a pre-grasp counts as reached (docs/PAPER_NOTES.md)."""
+"""Pose distance (m + (0.3/pi) rad, L1) below which a pre-grasp counts as reached (docs/PAPER_DETAILS.md)."""
 PLANNING_MAX_STEPS = 150
 """7.5 s at 20 Hz."""
 TARGET_SALT = 29

@@ -1,4 +1,4 @@
-"""Trajectory-prediction benchmark of the RT-V3 prior (paper Table I, left half; docs/PAPER_NOTES.md "Metrics").
+"""Trajectory-prediction benchmark of the RT-V3 prior (paper Table I, left half; docs/PAPER_DETAILS.md "Metrics").
 
 Test windows: ``T + H`` consecutive frames of one episode (20 = 8 + 12), the current step
 is the T-th frame (index 7 counting from 0, "index 8" in the paper's 1-based wording): the
@@ -283,7 +283,7 @@ def window_batch(
 # ----------------------------------------------------------------------------- calibration
 
 CALIBRATION_ALPHA = 0.85
-"""The shared controller's OOD-gate quantile (docs/PAPER_NOTES.md), used to check the prior's calibration."""
+"""The shared controller's OOD-gate quantile (docs/PAPER_DETAILS.md), used to check the prior's calibration."""
 
 
 def step0_calibration(mixture: Any, true_translation: torch.Tensor,

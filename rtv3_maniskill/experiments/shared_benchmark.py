@@ -1,6 +1,6 @@
 """Simulated shared-control benchmark (paper Sec. "Simulated Shared Control Experiments", Table II).
 
-The authors' protocol (docs/PAPER_NOTES.md, "Authors' benchmark protocol"): the goals are the
+The authors' protocol (docs/PAPER_DETAILS.md, "Authors' benchmark protocol"): the goals are the
 *feasible* grasp candidates of each scene (:mod:`rtv3_maniskill.experiments.goals`: collision-free
 IK at the pre-grasp and a free straight 5 cm approach; the others are counted by reason in
 ``goals.csv`` and never run), optionally a seeded random subset of ``goals_per_scene`` per scene;

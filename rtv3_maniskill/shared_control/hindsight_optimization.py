@@ -1,6 +1,6 @@
 """Hindsight Optimization (HO) baseline: Javdani et al. 2018, "Shared autonomy via hindsight optimization".
 
-Written from the published method and the original constants (docs/PAPER_NOTES.md, "Hindsight Optimization"):
+Written from the published method and the original constants (docs/PAPER_DETAILS.md, "Hindsight Optimization"):
 
 * per goal a Huber cost-to-go on the distance ``d`` (translation: m; rotation: rad,
   quaternion angle, weighted by ``rotation_weight``):
@@ -96,7 +96,7 @@ VARIANTS: dict[str, HOConstants] = {
     ),
 }
 """Known variants: the original constants; the RT-V3 paper's translation-only baseline; and our reading
-of the RT-V3 authors' public HO (docs/PAPER_NOTES.md, "Hindsight Optimization constants"): the
+of the RT-V3 authors' public HO (docs/PAPER_DETAILS.md, "Hindsight Optimization constants"): the
 paper's translation cost with its linear branch scaled by 0.6, and the original rotation cost whose
 assistance is kept, scaled by 0.125."""
 

@@ -10,13 +10,13 @@ Paper, Sec. "Posterior Decision Making". Per maneuver class ``k`` (B batch, K cl
   ``pi_k' ∝ pi_k N(v_u; mu_k, Sigma_k + S_u) N(w_u; omega_k, Gamma_k + G_u)``.
 
 Reading of the class weights. The paper writes the class likelihood with the *prior*
-component ``N(v_u; mu_z, Sigma_z) N(w_u; omega_z, Gamma_z)``; docs/PAPER_NOTES.md (authors' code)
+component ``N(v_u; mu_z, Sigma_z) N(w_u; omega_z, Gamma_z)``; docs/PAPER_DETAILS.md (authors' code)
 writes the rotation term at the fused translation ``omega_k'``. We follow the paper's
 choice of the prior component (rotation Gaussian evaluated at the prior translation mean
 ``mu_k``, ``reweight_rotation_at="prior"``, the default) and add the user covariance to
 both terms, which is the exact marginal ``∫ N(u; a, S_u) N(a; mu, Sigma) da`` under the
 paper's own likelihood model ``p(u | a) = N(u; a, Sigma_sys)``. ``"fused"`` gives the
-docs/PAPER_NOTES.md variant.
+docs/PAPER_DETAILS.md variant.
 
 All computation runs in float64; inputs may be float32. Covariances are symmetrised and
 their eigenvalues clamped to ``[MIN_VARIANCE, MAX_VARIANCE]`` before use, so no step can
@@ -224,7 +224,7 @@ def fuse_user_command(
         user_trans_cov: ``(B, 3, 3)`` ``S_u`` (the paper's Sigma^sys).
         user_rot_cov: ``(B, 3, 3)`` ``G_u`` (the paper's Gamma^sys).
         reweight_rotation_at: ``"prior"`` (paper: rotation term of the class likelihood at
-            ``omega_k(mu_k)``) or ``"fused"`` (docs/PAPER_NOTES.md: at ``omega_k(mu_k')``).
+            ``omega_k(mu_k)``) or ``"fused"`` (docs/PAPER_DETAILS.md: at ``omega_k(mu_k')``).
         prior: optional :func:`prior_twist_mixture` of the same ``mixture``; its class weights,
             translation Gaussians and rotation Gaussians are reused instead of recomputed.
         observed: optional ``(B, 6)`` bool, the axes of the command that carry an observation
@@ -465,7 +465,7 @@ def rotation_entropy_bounds(mixture: FactorizedTwistMixture) -> tuple[torch.Tens
 
 @functools.lru_cache(maxsize=64)
 def ood_threshold(alpha: float = 0.85, dof: int = 3) -> float:
-    """``chi2.ppf(alpha, dof)``: the gate on the squared Mahalanobis distance (docs/PAPER_NOTES.md)."""
+    """``chi2.ppf(alpha, dof)``: the gate on the squared Mahalanobis distance (docs/PAPER_DETAILS.md)."""
     from scipy.stats import chi2
 
     if not 0.0 < alpha < 1.0:
@@ -484,14 +484,14 @@ def is_out_of_distribution(
     """``(B,)`` bool: the user command is farther than ``chi2.ppf(alpha, d)`` (squared Mahalanobis,
     ``d`` the number of observed axes tested) from *every* class, i.e. from the nearest one.
 
-    ``covariance``: ``"class"`` measures the distance under each class's own covariance (docs/PAPER_NOTES.md:
+    ``covariance``: ``"class"`` measures the distance under each class's own covariance (docs/PAPER_DETAILS.md:
     "the Mahalanobis distance of the user translation to the nearest class": is the command a
     plausible draw of one of the prior's maneuvers?); ``"predictive"`` adds the user covariance
     (``Sigma_k + S_u``: the density of a noisy command; with the authors' ``S_u`` of 0.01-0.03
     (m/s)^2 it accepts any command within ~0.3 m/s of a class mean, so a prior that has stalled
     keeps control).
 
-    ``dofs``: ``"translation"`` (docs/PAPER_NOTES.md) tests ``v_u``; ``"twist"`` the sum of the translation
+    ``dofs``: ``"translation"`` (docs/PAPER_DETAILS.md) tests ``v_u``; ``"twist"`` the sum of the translation
     and rotation distances to the same class (``v_u`` and ``w_u`` are independent given the
     class). Only the observed axes of the command count (``fused.observed``; the marginal
     distance, ``d`` = their number); with none observed the command is never OOD.
@@ -521,7 +521,7 @@ def is_out_of_distribution(
 class UserCovarianceEstimator:
     """Adaptive user-interface covariances ``S_u`` (translation) and ``G_u`` (rotation), per batch element.
 
-    docs/PAPER_NOTES.md: start ``diag([0.03]*3 + [0.1]*3)``; keep the last 14 non-zero commands;
+    docs/PAPER_DETAILS.md: start ``diag([0.03]*3 + [0.1]*3)``; keep the last 14 non-zero commands;
     ``S <- 0.8 S + 0.2 sample-cov`` only while ``det^(1/3) > 0.01``. Our reading: the
     translation and rotation blocks are updated separately (the posterior only uses the
     two 3x3 blocks, and ``det^(1/3)`` is the geometric-mean variance of a 3x3 block); the

@@ -16,7 +16,7 @@ Per step and batch element, one of three modes (``SharedControlDiagnostics.modes
   control for the final approach), (b) in the out-of-distribution window: the command's
   observed axes are farther than ``chi2.ppf(ood_alpha, d)`` (squared Mahalanobis under the
   class covariances, ``d`` observed axes; :func:`posterior.is_out_of_distribution` for the
-  variants in docs/PAPER_NOTES.md) from every class -> this step and the next ``ood_steps`` steps, class
+  variants in docs/PAPER_DETAILS.md) from every class -> this step and the next ``ood_steps`` steps, class
   weights kept at the prior's (no re-weighting with an OOD command); a new OOD command
   inside the window restarts it, (c) the documented fallback for an empty grasp set:
   with no candidate grasps the prior has nothing to condition on, so the policy is not
@@ -77,16 +77,16 @@ class SharedControlConfig:
     """Steps after an OOD command during which the user's command is executed."""
     ood_covariance: str = "predictive"
     """Covariance of the OOD test's Mahalanobis distance: ``"predictive"`` (``Sigma_k + S_u``: a
-    command is judged with the user's own noise) or ``"class"`` (``Sigma_k``, docs/PAPER_NOTES.md's
+    command is judged with the user's own noise) or ``"class"`` (``Sigma_k``, docs/PAPER_DETAILS.md's
     "distance to the nearest class", the paper's reading); see :func:`posterior.is_out_of_distribution`."""
     ood_dofs: str = "twist"
     """What the OOD test looks at: ``"twist"`` (translation and rotation) or ``"translation"``
-    (docs/PAPER_NOTES.md); see :func:`posterior.is_out_of_distribution`."""
+    (docs/PAPER_DETAILS.md); see :func:`posterior.is_out_of_distribution`."""
     uncommanded_axes: str = "missing"
     """How a zero axis of a user command (``|u_i| <= input_threshold``) of a command that is not
     zero altogether is read: ``"missing"``, an axis the device does not give (a mode-switching
     or single-axis user), so neither the fusion nor the OOD test uses it and the prior fills it
-    in; ``"zero"`` (the paper's and docs/PAPER_NOTES.md's reading), an observation "hold still" on that axis."""
+    in; ``"zero"`` (the paper's and docs/PAPER_DETAILS.md's reading), an observation "hold still" on that axis."""
     user_trans_var: float = 0.03
     """Initial S_u diagonal ((m/s)^2)."""
     user_rot_var: float = 0.1
@@ -96,7 +96,7 @@ class SharedControlConfig:
     user_cov_decay: float = 0.8
     user_cov_floor: float = 0.01
     reweight_rotation_at: str = "prior"
-    """See :func:`posterior.fuse_user_command` ("prior" = paper, "fused" = docs/PAPER_NOTES.md)."""
+    """See :func:`posterior.fuse_user_command` ("prior" = paper, "fused" = docs/PAPER_DETAILS.md)."""
     belief_memory: float = 1.0
     """Recursive goal belief. 0 (the paper): every step's class weights are the prior's alone, the
     evidence of earlier commands is forgotten. In (0, 1]: the log-likelihood of the user's commands
@@ -239,7 +239,7 @@ def surface_distance(observation: dict[str, Any]) -> torch.Tensor:
 def most_likely_twist(prior: posterior.FactorizedTwistMixture) -> torch.Tensor:
     """The prior's most likely step-0 action ``(B, 6)``: the argmax class, the mean of its
     translation Gaussian, then the mean of its rotation Gaussian given that translation
-    (docs/PAPER_NOTES.md "Most-Likely"; the same as the policy's ``select_action``). ``prior`` is
+    (docs/PAPER_DETAILS.md "Most-Likely"; the same as the policy's ``select_action``). ``prior`` is
     :func:`posterior.prior_twist_mixture`, whose rotation Gaussians already sit at the
     translation means, so no second pass through the network is needed."""
     best = prior.log_weights.argmax(-1)

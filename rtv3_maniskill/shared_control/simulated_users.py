@@ -1,22 +1,22 @@
-"""Simulated users for the shared-control benchmark (paper appendix "Simulated User"; docs/PAPER_NOTES.md).
+"""Simulated users for the shared-control benchmark (paper appendix "Simulated User"; docs/PAPER_DETAILS.md).
 
 Every user aims at a goal pose (the target grasp's pre-grasp) and computes the ideal
 command ``e = se3_log(T_cur^-1 T_goal)``: the body twist (EE frame, ``[v (m/s), w (rad/s)]``)
-that reaches the goal in one second. It is unscaled, as in docs/PAPER_NOTES.md and the appendix (no
+that reaches the goal in one second. It is unscaled, as in docs/PAPER_DETAILS.md and the appendix (no
 gain). The appendix writes ``Logmap(T_goal T_cur^-1)`` but calls it the twist "in the local
-frame"; the body twist ``T_cur^-1 T_goal`` (docs/PAPER_NOTES.md) is the one that is local, and the one
+frame"; the body twist ``T_cur^-1 T_goal`` (docs/PAPER_DETAILS.md) is the one that is local, and the one
 the controllers here execute. An optional norm clip (``max_linear_speed`` /
 ``max_angular_speed``) is applied to the final command.
 
 Users (``make_user(name, seed)``):
 
 * ``ideal``: ``e`` (a noiseless user; reference only).
-* ``noisy``: ``e + N(0, 0.05 I6)``; 0.05 is the *variance* (docs/PAPER_NOTES.md).
+* ``noisy``: ``e + N(0, 0.05 I6)``; 0.05 is the *variance* (docs/PAPER_DETAILS.md).
 * ``laggy``: with probability 0.8 repeat the previous command, else ``e``.
 * ``mode_switching``: 20 steps translation only ``[v, 0]``, then 20 steps rotation only ``[0, w]``.
 * ``single_dof``: every 10 steps pick ``i* = argmax_i |e_i| w_i`` (``w`` = 1 for translation,
-  0.1 for rotation: docs/PAPER_NOTES.md/authors' code; the appendix gives the unweighted argmax) and
-  command ``2 e_i*`` on that DoF alone (gain 2: docs/PAPER_NOTES.md; the appendix writes ``e_i``). The
+  0.1 for rotation: docs/PAPER_DETAILS.md/authors' code; the appendix gives the unweighted argmax) and
+  command ``2 e_i*`` on that DoF alone (gain 2: docs/PAPER_DETAILS.md; the appendix writes ``e_i``). The
   DoF is held for the period, its value recomputed each step from the current ``e``.
 * ``low_dof``: translation only ``[v, 0]``.
 
@@ -95,7 +95,7 @@ class IdealUser(SimulatedUser):
 
 
 class NoisyUser(SimulatedUser):
-    """``u = e + N(0, variance I6)``, variance 0.05 (docs/PAPER_NOTES.md)."""
+    """``u = e + N(0, variance I6)``, variance 0.05 (docs/PAPER_DETAILS.md)."""
 
     name = "noisy"
 

@@ -77,7 +77,7 @@ class GraspClutterEnv(BaseEnv):
         voxel_size: point-cloud voxel size in m (7.5 mm).
         camera_resolution: depth camera width = height in pixels.
         randomize_camera: draw the camera pose per scene (paper) instead of a fixed view.
-        success_threshold: pose distance (docs/PAPER_NOTES.md, shared-control weights) counted as success.
+        success_threshold: pose distance (docs/PAPER_DETAILS.md, shared-control weights) counted as success.
         collision_force_threshold: N of contact force on any robot link counted as collision.
     """
 
@@ -325,7 +325,7 @@ class GraspClutterEnv(BaseEnv):
         return se3.translate_along_z(self.target_grasp_pose, -PREGRASP_DISTANCE)
 
     def pregrasp_distance(self) -> torch.Tensor:
-        """``(B,)`` pose distance (docs/PAPER_NOTES.md, shared-control weights) of the TCP to the pre-grasp,
+        """``(B,)`` pose distance (docs/PAPER_DETAILS.md, shared-control weights) of the TCP to the pre-grasp,
         the smaller over the grasp and its pi-about-z twin (parallel-jaw symmetry)."""
         return se3.symmetric_pose_distance(self.target_pregrasp_pose, self.tcp_pose_matrix,
                                            se3.SHARED_CONTROL_ROT_WEIGHT)

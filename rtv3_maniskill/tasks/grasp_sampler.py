@@ -1,6 +1,6 @@
 """Antipodal parallel-jaw grasp candidates for a clutter scene (``GraspClutter-v1``).
 
-Protocol (docs/PAPER_NOTES.md "Scene generation", VGN/GIGA sampling plus a geometric antipodal
+Protocol (docs/PAPER_DETAILS.md "Scene generation", VGN/GIGA sampling plus a geometric antipodal
 test instead of a simulated lift):
 
 1. per object, sample surface points with face normals on its collision mesh (world
@@ -54,7 +54,7 @@ from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF
 
 MIN_WIDTH = 0.005
 MIN_SCORE = 0.4
-"""Positive-label threshold (docs/PAPER_NOTES.md, context)."""
+"""Positive-label threshold (docs/PAPER_DETAILS.md, context)."""
 FRICTION_COEFFICIENT = 0.5
 NUM_YAWS = 6
 DEPTH_RANGE = (-0.1, 1.1)

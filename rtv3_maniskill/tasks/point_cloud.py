@@ -15,7 +15,7 @@ import torch
 
 from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF_SIZE, SceneGeometry
 
-DEFAULT_VOXEL_SIZE = 0.3 / 40  # 7.5 mm (docs/PAPER_NOTES.md)
+DEFAULT_VOXEL_SIZE = 0.3 / 40  # 7.5 mm (docs/PAPER_DETAILS.md)
 TABLE_CROP_Z = 0.004
 """Points at or below this height (m) are the table surface and are dropped."""
 

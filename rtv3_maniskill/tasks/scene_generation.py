@@ -1,4 +1,4 @@
-"""Clutter layouts following the VGN / GIGA protocol (docs/PAPER_NOTES.md, "Scene generation").
+"""Clutter layouts following the VGN / GIGA protocol (docs/PAPER_DETAILS.md, "Scene generation").
 
 A layout is computed in a private, physics-only SAPIEN scene (no rendering, CPU PhysX):
 objects are dropped (``pile``) or placed upright (``packed``) in the workspace and

@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 import trimesh
 
-# The authors' placement (docs/PAPER_NOTES.md, "Authors' benchmark protocol"): the Panda base
+# The authors' placement (docs/PAPER_DETAILS.md, "Authors' benchmark protocol"): the Panda base
 # stands 0.45 m behind the workspace centre and 0.15 m below the workspace floor (the table top),
 # so that the ready pose holds the TCP 0.34 m above the table at the workspace's near edge.
 # ManiSkill's TableSceneBuilder table (a kinematic box, top at z = 0, 1.209 m deep, 2.418 m wide)

@@ -183,7 +183,7 @@ def read_actions(batch: dict[str, torch.Tensor], batch_size: int, horizon: int) 
 
 def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int = 10,
                      sizes: str = "uniform") -> SceneContext:
-    """Training augmentation (docs/PAPER_NOTES.md): keep a random subset of 10..all valid grasps, always the target.
+    """Training augmentation (docs/PAPER_DETAILS.md): keep a random subset of 10..all valid grasps, always the target.
 
     Args:
         target: ``(B,)`` or ``(B, 1)`` index of the target grasp; rows whose target is out of range or

@@ -1,6 +1,6 @@
 """Configuration of the RT-V3 prior policy (LeRobot policy type ``rtv3``).
 
-Defaults follow docs/PAPER_NOTES.md (the authors' constants) and the
+Defaults follow docs/PAPER_DETAILS.md (the authors' constants) and the
 Trajectron++ training recipe RT-V3 builds on. Every translational velocity the network
 sees or predicts is multiplied by ``translation_scale`` (the authors use 5); outputs of
 the policy API are always unscaled (m/s, rad/s).
@@ -49,8 +49,8 @@ class RTV3Config(PreTrainedConfig):
     """RT-V3 prior: CVAE over body-twist trajectories conditioned on history, point cloud and grasps.
 
     Input/output structure:
-        n_obs_steps: T, history length incl. the current step (docs/PAPER_NOTES.md: 8).
-        horizon: H, predicted future steps (docs/PAPER_NOTES.md: 12).
+        n_obs_steps: T, history length incl. the current step (docs/PAPER_DETAILS.md: 8).
+        horizon: H, predicted future steps (docs/PAPER_DETAILS.md: 12).
         n_action_steps: actions executed per model call by ``select_action`` (1 = closed loop, as in the paper).
         num_points / max_grasps: N and M of the fixed-size context arrays (``features.py``); they fix the
             length of the packed ``observation.environment_state``.
@@ -66,29 +66,29 @@ class RTV3Config(PreTrainedConfig):
         latent_training: "enumerate" = exact E_q over all K classes (low variance, q also gets gradient
             from the likelihood); "sample" = one z ~ q per sample (Trajectron++; q learns only via the KL).
 
-    Encoders (docs/PAPER_NOTES.md sizes):
+    Encoders (docs/PAPER_DETAILS.md sizes):
         history_hidden_dim / future_hidden_dim: LSTM / BiLSTM hidden sizes (32).
         grasp_*: transformer encoder d=128, 4 heads, 2 layers + 2-layer decoder queried by h0_d.
         grasp_input_position: also feed the grasp's EE-frame position (3) next to its 6-D log map.
-        min_grasp_score: grasps with score <= this are dropped from the context (docs/PAPER_NOTES.md keeps score > 0.4;
-            default 0 keeps every grasp the dataset marks valid).
+        min_grasp_score: grasps with score <= this are dropped from the context (docs/PAPER_DETAILS.md
+            keeps score > 0.4; default 0 keeps every grasp the dataset marks valid).
         point_channels / point_heads / point_depths: the three PTv3-style stages (32/32/C, heads 2/4/4,
             depth 1); point_patch_size 120; point_grid_size 7.5 mm (doubled at each grid pooling).
         point_stem_poolings: parameter-free grid poolings (2x coarser each, features max-pooled, coordinates
             averaged) between the embedding and the first stage. 1 (default): the first stage attends over one
             point per 15 mm voxel (a scan voxelised at 7.5 mm has ~3x fewer), which takes ~30 % off
             ``select_action`` on CPU with all N = 2048 slots filled at no measured cost in prediction or planning
-            (README); 0: the authors' layout (docs/PAPER_NOTES.md), the first stage attends over every input point.
+            (README); 0: the authors' layout (docs/PAPER_DETAILS.md), the first stage attends over every input point.
             Adds no parameters, so weights move between the two.
         point_decoder_heads / point_decoder_layers: decoder queried by h0_d (4 heads, 1 layer).
         use_grasp_encoder / use_point_encoder: ablation switches (paper Table I).
 
     Scaling:
-        translation_scale: multiplies translational velocities in and out of the network (docs/PAPER_NOTES.md: 5).
+        translation_scale: multiplies translational velocities in and out of the network (docs/PAPER_DETAILS.md: 5).
         position_scale: multiplies positions fed to the network (poses, points, grasps), m -> network units.
         log_sigma_min / log_sigma_max: clamp of predicted log standard deviations (network units).
 
-    Loss (Trajectron++ recipe, docs/PAPER_NOTES.md):
+    Loss (Trajectron++ recipe, docs/PAPER_DETAILS.md):
         kl_weight: beta = 100, annealed with a sigmoid from kl_weight_start, centred at kl_crossover steps,
             width kl_crossover / kl_sigmoid_divisor steps.
         kl_min: KL(q||p) is clamped below at 0.07 (free bits).
@@ -97,7 +97,7 @@ class RTV3Config(PreTrainedConfig):
             6 (the joint 6-D one at 12).
         mutual_information_weight: weight of I_p subtracted from the loss (Trajectron++: 1).
         history_noise_translation / _rotation: training-time uniform se(3) noise (m, rad) applied to the
-            past poses (not the current one) (docs/PAPER_NOTES.md augmentation). 0 disables.
+            past poses (not the current one) (docs/PAPER_DETAILS.md augmentation). 0 disables.
         twist_noise_linear / _angular: training-time uniform noise (m/s, rad/s) on the history's body
             twists, the current one (a_{-1}, fed to the decoder) included; the targets stay clean, so
             the prior learns to return to the expert's motion from a perturbed one instead of copying
@@ -169,7 +169,7 @@ class RTV3Config(PreTrainedConfig):
     grasp_input_position: bool = True
     min_grasp_score: float = 0.0
     grasp_subset_min: int = 1
-    """Training augmentation (docs/PAPER_NOTES.md): each sample keeps a random subset of grasp candidates of size
+    """Training augmentation (docs/PAPER_DETAILS.md): each sample keeps a random subset of grasp candidates of size
     grasp_subset_min..all, always with the target. The authors use 10; 1 also covers the planning
     benchmark, which shows the policy only its target grasp."""
     grasp_subset_sizes: str = "log_uniform"

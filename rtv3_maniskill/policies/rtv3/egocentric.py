@@ -32,7 +32,7 @@ def uniform_se3_noise(like: torch.Tensor, first: float, last: float) -> torch.Te
 def perturb_poses(poses: torch.Tensor, translation: float, rotation: float) -> torch.Tensor:
     """Right-multiply ``(..., 4, 4)`` poses by ``Exp(u)``, ``u ~ U(-[t]*3, [t]*3) x U(-[r]*3, [r]*3)``.
 
-    Training augmentation (docs/PAPER_NOTES.md: uniform se(3) noise on the inputs).
+    Training augmentation (docs/PAPER_DETAILS.md: uniform se(3) noise on the inputs).
     """
     like = poses.new_empty(*poses.shape[:-2], 6)
     return poses @ se3.se3_exp(uniform_se3_noise(like, translation, rotation))
@@ -92,7 +92,7 @@ _IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
 def grasps_in_frame(frame: torch.Tensor, grasps: torch.Tensor) -> torch.Tensor:
     """Grasp poses relative to ``frame``: ``(B, M, 9)`` grasps -> ``(B, M, 4, 4)`` ``T_0^-1 G``.
 
-    Parallel-jaw symmetry (docs/PAPER_NOTES.md): ``G`` and ``G Rz(pi)`` are the same grasp; the one whose
+    Parallel-jaw symmetry (docs/PAPER_DETAILS.md): ``G`` and ``G Rz(pi)`` are the same grasp; the one whose
     orientation is closer to the current EE orientation is kept (larger rotation trace, i.e.
     ``R_00 + R_11 >= 0`` after the choice). Padded rows (zero quaternion) give the identity
     rotation and are masked by the caller.

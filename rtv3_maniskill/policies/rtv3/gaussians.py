@@ -1,6 +1,6 @@
 """Gaussian action distributions of the RT-V3 decoder (Eq. velocitygmm, rotgmm).
 
-Log-densities use ``log det Sigma`` (the authors' code used ``det``, a known bug; docs/PAPER_NOTES.md).
+Log-densities use ``log det Sigma`` (the authors' code used ``det``, a known bug; docs/PAPER_DETAILS.md).
 """
 
 from __future__ import annotations

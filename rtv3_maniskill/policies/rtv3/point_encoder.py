@@ -229,7 +229,7 @@ class PointTransformerEncoder(nn.Module):
 
     Args:
         in_dim: per-point input features (e.g. 6 = scaled xyz + rgb).
-        channels / heads / depths: per stage (docs/PAPER_NOTES.md: 32/32/C, 2/4/4, 1/1/1).
+        channels / heads / depths: per stage (docs/PAPER_DETAILS.md: 32/32/C, 2/4/4, 1/1/1).
         patch_size: points per attention patch (120). grid_size: input voxel size (m, 7.5 mm).
         position_scale: multiplies coordinates fed to the positional MLPs.
         stem_poolings: parameter-free merges into a 2x coarser grid between the embedding and the

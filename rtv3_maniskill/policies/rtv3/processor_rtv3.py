@@ -77,7 +77,7 @@ def batch_to_rtv3_transition(batch: dict[str, Any]):
     """LeRobot's ``batch_to_transition`` that also carries ``target_grasp_index`` through.
 
     The dataset's target index is privileged training information: the policy never reads
-    it as an input, but training needs it for the grasp-subset augmentation (docs/PAPER_NOTES.md: keep a
+    it as an input, but training needs it for the grasp-subset augmentation (docs/PAPER_DETAILS.md: keep a
     random subset of the candidates, always with the target). LeRobot's default converter
     keeps only ``observation.*``, ``action`` and a few bookkeeping keys.
     """
