@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import torch
 
+from rtv3_maniskill import se3
+
 FPS = 20
 """Control and logging rate (docs/PAPER_DETAILS.md): dt = 0.05 s."""
 DT = 1.0 / FPS
@@ -149,3 +151,8 @@ def observation_from_env(obs: dict) -> dict[str, torch.Tensor]:
         GRASPS: extra["grasps"].float(),
         GRASPS_MASK: extra["grasps_mask"].float(),
     }
+
+
+def pregrasp_poses(grasp_poses: torch.Tensor) -> torch.Tensor:
+    """Grasp poses ``(..., 4, 4)`` moved ``PREGRASP_DISTANCE`` back along their own z (approach) axis."""
+    return se3.translate_along_z(grasp_poses, -PREGRASP_DISTANCE)

@@ -27,8 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from rtv3_maniskill import features, se3
-from rtv3_maniskill.features import PREGRASP_DISTANCE
+from rtv3_maniskill import features
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
 
@@ -173,7 +172,7 @@ class DemonstrationRecorder:
         # Parallel-jaw symmetry: aim for the twin closer to the start orientation (docs/PAPER_DETAILS.md).
         grasp = canonicalize_symmetric(grasp_set.poses[grasp_index : grasp_index + 1],
                                        self.planner.forward_kinematics(q_start))[0]
-        pregrasp = se3.translate_along_z(torch.from_numpy(grasp), -PREGRASP_DISTANCE).numpy()
+        pregrasp = features.pregrasp_poses(torch.from_numpy(grasp)).numpy()
         transit = self.planner.plan_to_pose(q_start, pregrasp, timeout=self.plan_timeout, seed=seed)
         if not transit.success:
             return "infeasible_target" if transit.failure_reason in _INFEASIBLE else "planning_failed"

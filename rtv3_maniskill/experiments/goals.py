@@ -13,8 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from rtv3_maniskill import se3
-from rtv3_maniskill.features import PREGRASP_DISTANCE
+from rtv3_maniskill.features import pregrasp_poses
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
 
@@ -38,7 +37,7 @@ def check_goal(planner, grasp_pose: np.ndarray, target_object: int, reference_tc
         seed: seeds the IK restarts.
     """
     grasp = aimed_grasp(grasp_pose, reference_tcp)
-    pregrasp = se3.translate_along_z(torch.from_numpy(grasp), -PREGRASP_DISTANCE).numpy()
+    pregrasp = pregrasp_poses(torch.from_numpy(grasp)).numpy()
     q_pre = planner.solve_ik(pregrasp, READY_QPOS, seed=seed)
     if q_pre is None:
         return "no_ik_pregrasp"
@@ -49,12 +48,11 @@ def check_goal(planner, grasp_pose: np.ndarray, target_object: int, reference_tc
 def check_scene_goals(env_base, planner=None, seed: int = 0) -> list[str]:
     """:func:`check_goal` for every candidate of the loaded scene of ``env_base`` (a single
     ``GraspClutter-v1`` env, unwrapped), in candidate order; padding rows are left out."""
-    from rtv3_maniskill.datasets.panda_model import PandaKinematics
     from rtv3_maniskill.datasets.planner import PandaPlanner
 
     if planner is None:
         planner = PandaPlanner(env_base.layouts[0])
     grasp_set = env_base.grasp_sets[0]
-    reference = PandaKinematics().forward_kinematics(READY_QPOS)
+    reference = planner.forward_kinematics(READY_QPOS)
     return [check_goal(planner, grasp_set.poses[i], int(grasp_set.object_ids[i]), reference, seed=seed * 1009 + i)
             for i in range(len(grasp_set.scores))]

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import features, se3
-from rtv3_maniskill.features import PREGRASP_DISTANCE
+from rtv3_maniskill.features import pregrasp_poses
 from rtv3_maniskill.records import SCENE_SEED_STRIDE, RecordStore, scene_seeds, select_targets
 
 PLANNING_SUCCESS_THRESHOLD = 0.2
@@ -69,11 +69,6 @@ PAPER_TABLE1_FULL = {"SR": 0.904, "CR": 0.079, "TOR": 0.017}
 
 
 # ----------------------------------------------------------------------------- success rule
-
-
-def pregrasp_poses(grasp_poses: torch.Tensor) -> torch.Tensor:
-    """Grasp poses ``(..., 4, 4)`` moved ``PREGRASP_DISTANCE`` back along their own z (approach) axis."""
-    return se3.translate_along_z(grasp_poses, -PREGRASP_DISTANCE)
 
 
 def planning_distance(tcp_pose: torch.Tensor, grasp_poses: torch.Tensor) -> torch.Tensor:

@@ -49,8 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from rtv3_maniskill import se3
-from rtv3_maniskill.features import PREGRASP_DISTANCE
+from rtv3_maniskill.features import pregrasp_poses
 from rtv3_maniskill.records import RecordStore, SettingsMismatch, scene_seeds, select_targets
 
 RESULT_FIELDS = (
@@ -555,7 +554,7 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
                 checks = [goal_checks.get((scene_seed, i)) for i in range(count)]
             feasible = [i for i, c in enumerate(checks) if c["check"] == "feasible"]
             grasps = select_targets(feasible, config.goals_per_scene, config.seed, scene_seed, salt=TARGET_SALT)
-            pregrasps = se3.translate_along_z(env.base.grasp_poses[0].double(), -PREGRASP_DISTANCE)
+            pregrasps = pregrasp_poses(env.base.grasp_poses[0].double())
             bar.total += len(grasps) * per_grasp
             bar.refresh()
             for g in grasps:

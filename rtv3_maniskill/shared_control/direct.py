@@ -22,16 +22,13 @@ class DirectTeleoperation:
         check_speed_limits(max_linear_speed, max_angular_speed)
         self.max_linear_speed = max_linear_speed
         self.max_angular_speed = max_angular_speed
-        self._batch_size = 0
 
     def reset(self) -> None:
         """Nothing to forget (stateless)."""
-        self._batch_size = 0
 
     def step(self, observation: dict[str, Any], user_twist: Any) -> torch.Tensor:
         """``observation`` (``observation.state (B, 27)``), ``user_twist (B, 6)`` or None -> ``(B, 6)`` float32."""
         _, user = step_inputs(observation, user_twist)
-        self._batch_size = user.shape[0]
         return clamp_twist_speed(user, self.max_linear_speed, self.max_angular_speed)
 
     def describe(self, index: int = 0) -> dict[str, Any]:

@@ -24,6 +24,7 @@ Frames: goals and EE pose are world ``(4, 4)``; twists are EE body frame ``[v, w
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -274,10 +275,8 @@ class HindsightOptimization:
         self.constants = VARIANTS[variant]
         self.max_linear_speed = max_linear_speed
         self.max_angular_speed = max_angular_speed
-        self._fixed = None
-        if goals is not None:
-            self._fixed = (as_poses(goals, "goals"), target_groups)
-            HindsightGoals(*self._fixed[:1], self.constants, target_groups)  # checks them now
+        self._fixed = None if goals is None else HindsightGoals(goals, self.constants, target_groups)
+        """The fixed goals (checked here), copied for every batch element at the first step."""
         self.episodes: list[HindsightGoals] = []
         """One :class:`HindsightGoals` per batch element, made at the first step after reset."""
 
@@ -287,7 +286,7 @@ class HindsightOptimization:
 
     def _start(self, observation: dict[str, Any], b: int) -> None:
         if self._fixed is not None:
-            self.episodes = [HindsightGoals(self._fixed[0], self.constants, self._fixed[1]) for _ in range(b)]
+            self.episodes = [copy.deepcopy(self._fixed) for _ in range(b)]
             return
         for key in (features.GRASPS, features.GRASPS_MASK):
             if key not in observation:

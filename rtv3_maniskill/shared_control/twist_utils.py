@@ -16,33 +16,6 @@ import torch
 from rtv3_maniskill import features, se3
 
 
-def as_twist(value: Any, name: str = "user_twist", batch_size: int | None = None, dtype=torch.float64) -> torch.Tensor:
-    """Validate a twist ``(6,)`` or ``(B, 6)`` and return it as a tensor of ``dtype``.
-
-    Raises:
-        ValueError: wrong shape (``batch_size`` given: ``(6,)`` or ``(batch_size, 6)``), or NaN/inf.
-    """
-    try:
-        twist = torch.as_tensor(np.asarray(value) if not isinstance(value, torch.Tensor) else value)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{name} must be an array of 6 numbers [v, w], got {type(value).__name__}") from err
-    if not (twist.is_floating_point() or twist.dtype in (torch.int32, torch.int64)):
-        raise ValueError(f"{name} must be a real-valued array, got dtype {twist.dtype}")
-    twist = twist.to(dtype)
-    ok_shapes = "(6,)" if batch_size is None else f"(6,) or ({batch_size}, 6)"
-    if twist.ndim == 1:
-        if twist.shape[0] != 6:
-            raise ValueError(f"{name} must have shape {ok_shapes} ([v (3), w (3)]), got {tuple(twist.shape)}")
-    elif twist.ndim == 2 and batch_size is not None:
-        if twist.shape != (batch_size, 6):
-            raise ValueError(f"{name} must have shape {ok_shapes} ([v (3), w (3)]), got {tuple(twist.shape)}")
-    else:
-        raise ValueError(f"{name} must have shape {ok_shapes} ([v (3), w (3)]), got {tuple(twist.shape)}")
-    if not torch.isfinite(twist).all():
-        raise ValueError(f"{name} contains NaN or inf: {twist.tolist()}")
-    return twist
-
-
 def as_pose(value: Any, name: str = "ee_pose", dtype=torch.float64) -> torch.Tensor:
     """Validate one homogeneous pose ``(4, 4)`` (finite, rotation block orthonormal)."""
     pose = torch.as_tensor(np.asarray(value) if not isinstance(value, torch.Tensor) else value).to(dtype)
@@ -157,5 +130,5 @@ def pregrasp_goals(grasps: torch.Tensor, grasps_mask: torch.Tensor) -> tuple[tor
     if len(index) == 0:
         raise ValueError("the scene has no valid grasp candidate: at least one goal is needed")
     rows = grasps[index].double()
-    pre = se3.translate_along_z(se3.pose_to_matrix(rows[:, :3], rows[:, 3:7]), -features.PREGRASP_DISTANCE)
+    pre = features.pregrasp_poses(se3.pose_to_matrix(rows[:, :3], rows[:, 3:7]))
     return torch.cat([pre, se3.rotate_about_z(pre, math.pi)]), torch.cat([index, index])

@@ -37,8 +37,8 @@ from mani_skill.utils.scene_builder.table import TableSceneBuilder
 from mani_skill.utils.structs.types import SimConfig
 
 from rtv3_maniskill import se3
-from rtv3_maniskill.features import DEFAULT_MAX_GRASPS, DEFAULT_NUM_POINTS, FPS, GRASP_DIM
-from rtv3_maniskill.tasks.grasp_sampler import PREGRASP_DISTANCE, GraspSet, sample_grasps
+from rtv3_maniskill.features import DEFAULT_MAX_GRASPS, DEFAULT_NUM_POINTS, FPS, GRASP_DIM, pregrasp_poses
+from rtv3_maniskill.tasks.grasp_sampler import GraspSet, sample_grasps
 from rtv3_maniskill.tasks.object_library import convex_part_file, make_object_set
 from rtv3_maniskill.tasks.point_cloud import DEFAULT_VOXEL_SIZE, process_point_cloud, sample_scene_surface
 from rtv3_maniskill.tasks.scene_generation import (
@@ -322,7 +322,7 @@ class GraspClutterEnv(BaseEnv):
     @property
     def target_pregrasp_pose(self) -> torch.Tensor:
         """``(B, 4, 4)`` the target grasp moved ``PREGRASP_DISTANCE`` back along its approach (z) axis."""
-        return se3.translate_along_z(self.target_grasp_pose, -PREGRASP_DISTANCE)
+        return pregrasp_poses(self.target_grasp_pose)
 
     def pregrasp_distance(self) -> torch.Tensor:
         """``(B,)`` pose distance (docs/PAPER_DETAILS.md, shared-control weights) of the TCP to the pre-grasp,
