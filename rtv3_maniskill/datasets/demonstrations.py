@@ -103,7 +103,8 @@ def describe_grasp(object_name: str, grasp_pose: np.ndarray) -> str:
     return f"grasp the {object_name} from {side}"
 
 
-def _state_vector(obs: dict) -> np.ndarray:
+def state_vector(obs: dict) -> np.ndarray:
+    """``observation.state (27,)`` of a single ``GraspClutter-v1`` observation, numpy float32."""
     return features.observation_from_env(obs)[features.STATE][0].cpu().numpy()
 
 
@@ -196,13 +197,13 @@ class DemonstrationRecorder:
         )
         object_poses_start = [a.pose.raw_pose.clone() for a in self.base.objects[0]]
         limits = self.base.agent.robot.get_qlimits()[0, :7].cpu().numpy()
-        states, actions = [_state_vector(obs)], []
+        states, actions = [state_vector(obs)], []
         closest_to_pregrasp = np.inf
         pregrasp_t = torch.as_tensor(pregrasp, dtype=torch.float32)
         for k in range(1, len(q_plan)):
             action = np.concatenate([q_plan[k], qd_plan[k], [0.04]]).astype(np.float32)
             obs, _, _, _, info = self.env.step(torch.as_tensor(action)[None])
-            states.append(_state_vector(obs))
+            states.append(state_vector(obs))
             actions.append(states[-1][7:13])  # realised body twist of this step
             if k <= pregrasp_step and bool(info["collision"]):
                 return "collision"

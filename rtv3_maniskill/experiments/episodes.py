@@ -293,7 +293,8 @@ class EpisodeResult:
         return counts
 
 
-def _frame(env: gym.Env) -> np.ndarray:
+def render_frame(env: gym.Env) -> np.ndarray:
+    """``env.render()`` of a single env as ``(H, W, 3)`` uint8 numpy."""
     image = env.render()
     image = image.cpu().numpy() if isinstance(image, torch.Tensor) else np.asarray(image)
     return image[0] if image.ndim == 4 else image
@@ -324,7 +325,7 @@ def run_episode(env: SharedControlEnv, method: AssistanceMethod | None, user: An
     base = env.base
     user.reset(env.user_goal())
     poses = [_tcp_pose(base).numpy()]
-    frames = [_frame(env)] if record_frames else []
+    frames = [render_frame(env)] if record_frames else []
     diagnostics: list[dict[str, Any]] = []
     success = bool(info["success"][0])
     collision = False
@@ -347,7 +348,7 @@ def run_episode(env: SharedControlEnv, method: AssistanceMethod | None, user: An
         })
         poses.append(_tcp_pose(base).numpy())
         if record_frames:
-            frames.append(_frame(env))
+            frames.append(render_frame(env))
     return EpisodeResult(
         success=success, collision=collision, steps=steps, trajectory=np.stack(poses), diagnostics=diagnostics,
         frames=frames, final_distance=distance, wall_time=time.perf_counter() - start,

@@ -18,7 +18,8 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import features
-from rtv3_maniskill.datasets.demonstrations import describe_grasp
+from rtv3_maniskill.datasets.demonstrations import describe_grasp, state_vector
+from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_speed_limits, make_method, render_frame
 from rtv3_maniskill.experiments.grasp_actions import EVENTS, GRIPPER_CLOSED, GraspActionConfig, GraspActions
 from rtv3_maniskill.experiments.grasp_trial import GraspTrialMonitor, TrialConfig
 from rtv3_maniskill.experiments.teleop_inputs import SimulatedOperator
@@ -62,16 +63,6 @@ class TrialResult:
     episode_index: int | None = None
 
 
-def _state(obs: dict) -> np.ndarray:
-    return features.observation_from_env(obs)[features.STATE][0].cpu().numpy()
-
-
-def _frame(env: Any) -> np.ndarray:
-    image = env.render()
-    image = image.cpu().numpy() if isinstance(image, torch.Tensor) else np.asarray(image)
-    return image[0] if image.ndim == 4 else image
-
-
 def _class_weights(diagnostics: dict) -> np.ndarray | None:
     weights = diagnostics.get("class_weights", diagnostics.get("belief"))
     return None if weights is None else np.asarray(weights, dtype=np.float32)
@@ -81,7 +72,6 @@ class TeleopSession:
     """Builds the env, method, input, window and recorder of a :class:`SessionConfig`; :meth:`run` plays it."""
 
     def __init__(self, config: SessionConfig) -> None:
-        from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_speed_limits, make_method
         from rtv3_maniskill.experiments.teleop_inputs import make_input
 
         self.config = config
@@ -176,7 +166,7 @@ class TeleopSession:
         panel = dict(method=cfg.method, input=cfg.input, trial=f"{trial + 1}/{cfg.trials}", task=task,
                      timeout=cfg.trial_config.timeout_s, mode="none", phase="free", gripper="open")
         if self.display is not None:
-            self.display.draw(_frame(env), dict(panel, time=0.0, contacts=0))
+            self.display.draw(render_frame(env), dict(panel, time=0.0, contacts=0))
             self.display.events()  # keys pressed while the scene loaded do not count
         print(f"trial {trial + 1}: scene {scene_seed}, {task}: started", flush=True)
         outcome, info, step = None, {}, 0
@@ -193,7 +183,7 @@ class TeleopSession:
             pressed = np.array([int(e in user.buttons) for e in EVENTS], dtype=np.int64)
             scripted = self.actions.step(tcp)
             env.gripper = self.actions.gripper
-            state = _state(obs)
+            state = state_vector(obs)
             if scripted is not None:
                 obs, _, _, _, info = env.step_scripted(scripted, "scripted", user_twist=user.body)
             elif self.actions.gripper == GRIPPER_CLOSED:  # holding: the user alone drives
@@ -211,8 +201,9 @@ class TeleopSession:
             if self.display is not None:
                 panel.update(mode=info["assistance_mode"] or "none", phase=self.actions.phase,
                              gripper="closed" if closed else "open")
-                self.display.draw(_frame(env), dict(panel, time=step * features.DT, contacts=self.monitor.contacts,
-                                                    diagnostics=diagnostics, outcome=outcome))
+                self.display.draw(render_frame(env), dict(panel, time=step * features.DT,
+                                                          contacts=self.monitor.contacts,
+                                                          diagnostics=diagnostics, outcome=outcome))
                 if cfg.screenshot is not None and cfg.screenshot_step == step:
                     self.display.screenshot(cfg.screenshot)
             if realtime:
@@ -220,7 +211,7 @@ class TeleopSession:
                 time.sleep(max(0.0, next_tick - time.perf_counter()))
         episode = None
         if self.recorder is not None and step > 0:
-            episode = self.recorder.end_trial(outcome, _state(obs), step * features.DT, self.monitor.contacts)
+            episode = self.recorder.end_trial(outcome, state_vector(obs), step * features.DT, self.monitor.contacts)
         print(f"trial {trial + 1}: scene {scene_seed}, {task}: {outcome} after {step * features.DT:.1f} s "
               f"({self.monitor.contacts} contact steps)", flush=True)
         return TrialResult(trial, scene_seed, outcome, step, self.monitor.contacts, task, episode)
