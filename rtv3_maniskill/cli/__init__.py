@@ -12,6 +12,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the main job: shared-control demo in a clutter scene (video + plots)"),
     "scene": ("scene", "render a random clutter scene; save an image with its point cloud and grasp candidates"),
     "generate": ("generate", "expert demonstrations from the motion planner -> LeRobot v3 dataset (resumable)"),
+    "dagger": ("dagger", "DAgger round: roll out the prior / users, re-plan from visited states -> LeRobot dataset"),
     "visualize-episode": ("visualize_episode",
                           "plot one dataset episode: scene, grasps, target and executed trajectory"),
     "evaluate": ("evaluate",

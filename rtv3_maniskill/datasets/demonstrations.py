@@ -73,6 +73,9 @@ class Episode:
     pregrasp_step: int
     """Index of the step at which the pre-grasp is reached (the approach starts)."""
     info: dict = field(default_factory=dict)
+    history_prefix: np.ndarray | None = None
+    """``(P, 27)`` states visited before ``state[0]`` (P < T), e.g. a DAgger rollout's: they enter the
+    stored state histories of the first frames and are never frames (never action targets) themselves."""
 
 
 START_NOISE_STD = 0.6 * np.array([0.1, 0.04, 0.1, 0.04, 0.1, 0.1, 0.1])
@@ -159,8 +162,6 @@ class DemonstrationRecorder:
     def record(self, grasp_index: int, seed: int) -> Episode | str:
         """Demonstration toward grasp ``grasp_index`` of the loaded scene, or a failure reason."""
         rng = np.random.default_rng(seed)
-        grasp_set = self.base.grasp_sets[0]
-        target_object = int(grasp_set.object_ids[grasp_index])
         q_start = None
         kin = self.planner.kin
         for _ in range(START_ATTEMPTS):  # a collision-free draw of the start distribution
@@ -170,6 +171,14 @@ class DemonstrationRecorder:
                 break
         if q_start is None:
             return "no_start_pose"
+        return self.record_from(q_start, grasp_index, seed)
+
+    def record_from(self, q_start: np.ndarray, grasp_index: int, seed: int) -> Episode | str:
+        """Demonstration toward grasp ``grasp_index`` from the arm joints ``q_start`` ``(7,)`` (rad), or a
+        failure reason: the expert's plan from a given state (DAgger relabelling starts here)."""
+        grasp_set = self.base.grasp_sets[0]
+        target_object = int(grasp_set.object_ids[grasp_index])
+        q_start = np.asarray(q_start, dtype=np.float64)[:7]
         # Parallel-jaw symmetry: aim for the twin closer to the start orientation (docs/PAPER_DETAILS.md).
         grasp = canonicalize_symmetric(grasp_set.poses[grasp_index : grasp_index + 1],
                                        self.planner.forward_kinematics(q_start))[0]

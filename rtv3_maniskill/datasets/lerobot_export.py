@@ -41,6 +41,7 @@ SETTINGS = "rtv3_generation.json"
 ATTEMPTS = "attempts.csv"
 ATTEMPT_FIELDS = ("key", "scene", "grasp", "outcome", "frames")
 _EPISODE_ARRAYS = ("state", "action", "point_cloud", "point_cloud_mask", "grasps", "grasps_mask")
+_OPTIONAL_ARRAYS = ("history_prefix",)
 _EPISODE_META = ("target_grasp_index", "scene_seed", "object_names", "target_object", "task", "pregrasp_step", "info")
 REPO_ID = "local/rtv3_grasp_clutter"
 
@@ -73,10 +74,16 @@ def dataset_features(num_points: int, max_grasps: int) -> dict:
     }
 
 
-def state_histories(states: np.ndarray, steps: int = features.HISTORY_STEPS) -> np.ndarray:
+def state_histories(states: np.ndarray, steps: int = features.HISTORY_STEPS,
+                    prefix: np.ndarray | None = None) -> np.ndarray:
     """``(S, 27)`` episode states -> ``(S, steps, 27)`` windows ending at each step, the first
-    state repeated before the episode start (what LeRobot's windows and the policy queue do)."""
-    padded = np.concatenate([np.repeat(states[:1], steps - 1, 0), states])
+    state repeated before the episode start (what LeRobot's windows and the policy queue do).
+    ``prefix`` ``(P, 27)``: states visited before ``states[0]`` (``Episode.history_prefix``), which
+    the windows of the first frames hold before the repeated first state."""
+    before = np.zeros((0, states.shape[1]), np.float32) if prefix is None else np.asarray(prefix, np.float32)
+    before = before[-(steps - 1):] if steps > 1 else before[:0]
+    start = before[:1] if len(before) else states[:1]
+    padded = np.concatenate([np.repeat(start, steps - 1 - len(before), 0), before, states])
     return np.stack([padded[t : t + steps] for t in range(len(states))]).astype(np.float32)
 
 
@@ -149,8 +156,11 @@ class StagingArea:
         self.close()
 
     @staticmethod
-    def key(scene_seed: int, grasp_index: int) -> str:
-        return f"scene{scene_seed:08d}_grasp{grasp_index:03d}"
+    def key(scene_seed: int, grasp_index: int, variant: str = "") -> str:
+        """``scene00000003_grasp007``, or with a ``variant`` (several episodes of one target, e.g. DAgger
+        relabels) ``scene00000003_grasp007_VARIANT``."""
+        base = f"scene{scene_seed:08d}_grasp{grasp_index:03d}"
+        return f"{base}_{variant}" if variant else base
 
     @staticmethod
     def scene_prefix(scene_seed: int) -> str:
@@ -167,11 +177,13 @@ class StagingArea:
         out = {r["key"]: dict(r, scene=int(r["scene"]), grasp=int(r["grasp"]), frames=int(r["frames"])) for r in rows}
         return {k: r for k, r in out.items() if r["outcome"] != "success" or (self.dir / f"{k}.npz").exists()}
 
-    def save(self, episode: Episode) -> None:
-        key = self.key(episode.scene_seed, episode.target_grasp_index)
+    def save(self, episode: Episode, variant: str = "") -> None:
+        key = self.key(episode.scene_seed, episode.target_grasp_index, variant)
         tmp = self.dir / f"{key}.tmp.npz"
+        optional = {k: getattr(episode, k) for k in _OPTIONAL_ARRAYS if getattr(episode, k) is not None}
         np.savez_compressed(
             tmp,
+            **optional,
             state=episode.state,
             action=episode.action,
             point_cloud=episode.point_cloud,
@@ -192,9 +204,10 @@ class StagingArea:
         )
         os.replace(tmp, self.dir / f"{key}.npz")
 
-    def log_attempt(self, scene_seed: int, grasp_index: int, outcome: str, frames: int = 0) -> None:
-        self.records.append(dict(key=self.key(scene_seed, grasp_index), scene=scene_seed, grasp=grasp_index,
-                                 outcome=outcome, frames=frames))
+    def log_attempt(self, scene_seed: int, grasp_index: int, outcome: str, frames: int = 0,
+                    variant: str = "") -> None:
+        self.records.append(dict(key=self.key(scene_seed, grasp_index, variant), scene=scene_seed,
+                                 grasp=grasp_index, outcome=outcome, frames=frames))
 
     def episode_files(self) -> list[Path]:
         return sorted(p for p in self.dir.glob("scene*_grasp*.npz") if not p.name.endswith(".tmp.npz"))
@@ -210,6 +223,7 @@ class StagingArea:
         try:
             with np.load(path) as data:
                 arrays = {k: data[k] for k in _EPISODE_ARRAYS}
+                arrays.update({k: data[k] for k in _OPTIONAL_ARRAYS if k in data.files})
                 meta = json.loads(str(data["meta"]))
             return Episode(**arrays, **{k: meta[k] for k in _EPISODE_META})
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError, KeyError, ValueError, TypeError) as err:
@@ -267,7 +281,7 @@ def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progres
         if end_at == "pregrasp" and ep.info.get("end_at", "grasp") == "grasp":
             state, action = end_at_pregrasp(ep.state, ep.action, ep.pregrasp_step)
             ep = replace(ep, state=state, action=action)
-        history = state_histories(ep.state)
+        history = state_histories(ep.state, prefix=ep.history_prefix)
         for t in range(len(ep.state)):
             dataset.add_frame(
                 {

@@ -169,6 +169,12 @@ class SharedControlEnv(gym.Wrapper):
         """The unwrapped ``GraspClutterEnv``."""
         return self.env.unwrapped
 
+    @property
+    def rendered_point_cloud(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The loaded scene's depth-camera cloud ``(1, N, 6)`` and mask ``(1, N)`` that replaces the
+        observation's (``rendered_context``), or None."""
+        return self._context
+
     def _with_context(self, obs: dict) -> dict:
         if self._context is not None:
             extra = dict(obs["extra"])

@@ -1,0 +1,52 @@
+"""``rtv3 dagger``: one DAgger round with the motion planner as the expert -> LeRobot v3 dataset.
+
+Resumable: rerun the same command after an interruption (finished rollouts and relabels are kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from rtv3_maniskill.experiments.dagger import DEFAULT_DRIVERS
+
+    parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
+                        help="checkpoint whose closed loop is rolled out (default: the shipped one)")
+    parser.add_argument("--output", type=Path, required=True, help="dataset folder (LeRobot root)")
+    parser.add_argument("--num-scenes", type=int, default=50, help="training scenes to roll out in")
+    parser.add_argument("--seed", type=int, default=5,
+                        help="scene i uses seed SEED*100000 + i (keep it apart from the benchmark blocks 7-9)")
+    parser.add_argument("--drivers", default=",".join(DEFAULT_DRIVERS),
+                        help="comma list: 'prior' and METHOD:USER with METHOD direct or rtv3")
+    parser.add_argument("--targets-per-scene", type=int, default=4, help="targets per scene (0 = all)")
+    parser.add_argument("--relabels-per-rollout", type=int, default=3, help="visited states re-planned per rollout")
+    parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
+    parser.add_argument("--objects", default="procedural")
+    parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")
+    parser.add_argument("--workers", type=int, default=1, help="parallel CPU worker processes")
+
+
+def run(args: argparse.Namespace) -> int:
+    from rtv3_maniskill.experiments.dagger import DaggerConfig, run_dagger
+
+    if args.policy_path is not None and not (args.policy_path / "config.json").is_file():
+        raise SystemExit(f"error: --policy.path {args.policy_path} holds no config.json (a pretrained_model folder)")
+    try:
+        config = DaggerConfig(
+            output=args.output, policy_path=args.policy_path, scenes=args.num_scenes, seed=args.seed,
+            drivers=tuple(d for d in args.drivers.split(",") if d.strip()),
+            targets_per_scene=args.targets_per_scene or None, relabels_per_rollout=args.relabels_per_rollout,
+            scene_type=args.scene_type, objects=args.objects, plan_timeout=args.plan_timeout, workers=args.workers)
+    except ValueError as err:
+        raise SystemExit(f"error: {err}") from None
+    if not config.output.parent.is_dir():
+        raise SystemExit(f"error: the parent folder of --output does not exist: {config.output.parent}")
+    try:
+        summary = run_dagger(config)
+    except ValueError as err:  # a folder holding a round made with other settings
+        raise SystemExit(f"error: {err}") from None
+    print(json.dumps({k: v for k, v in summary.items() if k != "config"}, indent=2))
+    return 0

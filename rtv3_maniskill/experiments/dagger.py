@@ -1,0 +1,384 @@
+"""DAgger with the motion planner as the expert: demonstrations from the states the prior meets.
+
+Behaviour cloning on planner demonstrations alone compounds its errors in the closed loop: the
+prior drifts to states no demonstration visits, and stalls or runs into the clutter there. This
+module collects data where the prior will be (Ross et al.'s DAgger, the planner as the expert):
+
+1. **Roll out** a driver on a training scene towards a target grasp: the prior alone (its most
+   likely twist, target-only context, from the authors' start distribution, as in the planning
+   benchmark), or a simulated user through Direct teleoperation or through RT-V3 shared control
+   (from the Panda ready pose, as in the shared-control benchmark). The rollout stops at the
+   pre-grasp, at the first robot contact or after ``max_steps``.
+2. **Relabel**: at a few visited states, re-plan from the current joint state to the target's
+   pre-grasp (:meth:`DemonstrationRecorder.record_from`: OMPL + Pinocchio, executed in the
+   simulator, the same checks as ``rtv3 generate``).
+3. **Store** one demonstration per relabelled state: its first frame is the visited state (with
+   the rollout's own velocity), its stored state history holds what happened before it in the
+   rollout, the user's noise and lag included (``Episode.history_prefix``), and its actions are
+   the expert's. A rollout's own frames are never action targets: they only appear inside the
+   history of the first frames.
+
+Rounds: train, roll out with the new checkpoint, relabel, train again on the union (the datasets
+are merged with LeRobot's ``aggregate_datasets``; ``scripts/train_dagger.sh`` runs the loop).
+
+Output: a folder laid out like ``rtv3 generate``'s (``rtv3_staging/`` with ``attempts.csv`` and
+one ``.npz`` per relabelled state, then the LeRobot dataset), resumable: a rerun skips finished
+rollouts and relabels. Keys: ``scene..._grasp..._r{driver}`` for a rollout (its outcome), and
+``scene..._grasp..._r{driver}t{step}`` for a relabel.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+DRIVER_METHODS = ("direct", "rtv3")
+DEFAULT_DRIVERS = ("prior", "rtv3:noisy", "direct:noisy", "rtv3:laggy", "rtv3:mode_switching",
+                   "rtv3:single_dof", "direct:single_dof", "rtv3:low_dof")
+"""The prior alone, and simulated users through RT-V3 (what the shared-control prior must read) and Direct."""
+DAGGER_SALT = 13
+"""``select_targets`` salt of DAgger runs (targets drawn independently of generation and benchmarks)."""
+
+
+def parse_driver(spec: str) -> tuple[str, str | None]:
+    """``"prior"`` -> ``("prior", None)``; ``"rtv3:noisy"`` -> ``("rtv3", "noisy")``.
+
+    Raises:
+        ValueError: unknown method or user (the message lists the known ones).
+    """
+    from rtv3_maniskill.shared_control.simulated_users import USERS
+
+    text = str(spec).strip().lower().replace("-", "_")
+    if text == "prior":
+        return "prior", None
+    method, _, user = text.partition(":")
+    if method not in DRIVER_METHODS or user not in USERS:
+        raise ValueError(f"unknown DAgger driver {spec!r}: expected 'prior' or METHOD:USER with METHOD in "
+                         f"{DRIVER_METHODS} and USER in {sorted(USERS)}")
+    return method, user
+
+
+@dataclass
+class DaggerConfig:
+    """Settings of one ``rtv3 dagger`` round.
+
+    Attributes:
+        output: dataset folder (LeRobot root, resumable).
+        policy_path: the checkpoint whose closed loop is rolled out (None = the shipped one).
+        scenes, seed: scene ``i`` has seed ``seed * 100000 + i`` (use a training seed block).
+        drivers: rollout drivers (:func:`parse_driver`); target ``j`` of scene ``i`` gets driver
+            ``(i * targets_per_scene + j) mod len(drivers)``.
+        targets_per_scene: seeded subset of each scene's grasp candidates (None = all).
+        relabels_per_rollout: visited states re-planned per rollout (seeded, spread over the rollout).
+        min_step: earliest rollout step that is relabelled (step 0 is the start demonstrations cover).
+        max_steps: rollout length limit (the benchmarks' 150).
+        plan_timeout: seconds per OMPL query.
+    """
+
+    output: Path
+    policy_path: Path | None = None
+    scenes: int = 50
+    seed: int = 5
+    drivers: tuple[str, ...] = DEFAULT_DRIVERS
+    targets_per_scene: int | None = 4
+    relabels_per_rollout: int = 3
+    min_step: int = 2
+    max_steps: int = 150
+    plan_timeout: float = 3.0
+    scene_type: str = "mixed"
+    objects: str = "procedural"
+    workers: int = 1
+
+    def __post_init__(self) -> None:
+        self.output = Path(self.output).expanduser().absolute()
+        self.drivers = tuple(self.drivers)
+        if not self.drivers:
+            raise ValueError("drivers must name at least one driver")
+        for spec in self.drivers:
+            parse_driver(spec)
+        for name in ("scenes", "relabels_per_rollout", "max_steps", "workers"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.targets_per_scene is not None and self.targets_per_scene < 1:
+            raise ValueError(f"targets_per_scene must be >= 1 or None, got {self.targets_per_scene}")
+        if self.min_step < 1:
+            raise ValueError(f"min_step must be >= 1, got {self.min_step}")
+
+    def settings(self, num_points: int, max_grasps: int) -> dict[str, Any]:
+        """What a resumed run must share (the dataset format and the rollouts' definition)."""
+        return dict(format="rtv3-grasp-clutter-v1", source="dagger", seed=self.seed, scene_type=self.scene_type,
+                    objects=self.objects, num_points=num_points, max_grasps=max_grasps, context="rendered",
+                    end_at="pregrasp", drivers=list(self.drivers), targets_per_scene=self.targets_per_scene,
+                    relabels_per_rollout=self.relabels_per_rollout, min_step=self.min_step,
+                    max_steps=self.max_steps, policy=str(self.policy_path or "shipped"))
+
+
+@dataclass
+class Rollout:
+    """What one driver did: ``S + 1`` states (start included) and how it ended."""
+
+    states: np.ndarray
+    """``(S + 1, 27)`` ``observation.state`` per step (world frame)."""
+    qpos: np.ndarray
+    """``(S + 1, 7)`` arm joints (rad)."""
+    outcome: str
+    """``"success"``, ``"collision"`` or ``"timeout"``."""
+    steps: int = 0
+    info: dict = field(default_factory=dict)
+
+
+def relabel_steps(rollout: Rollout, count: int, min_step: int, rng: np.random.Generator) -> list[int]:
+    """Visited steps to re-plan from: ``count`` of ``min_step .. S`` (the state after a contact
+    excluded), drawn one per equal stretch of the rollout so they spread over it; sorted."""
+    last = rollout.steps - (1 if rollout.outcome == "collision" else 0)
+    candidates = np.arange(min_step, last + 1)
+    if len(candidates) == 0:
+        return []
+    if len(candidates) <= count:
+        return candidates.tolist()
+    stretches = np.array_split(candidates, count)
+    return sorted(int(rng.choice(s)) for s in stretches)
+
+
+class DaggerCollector:
+    """The rollout env (``pd_ee_twist``, rendered context), the expert (a :class:`DemonstrationRecorder`
+    in its own ``pd_joint_pos_vel`` env) and the policy, for one process."""
+
+    def __init__(self, config: DaggerConfig, policy: Any) -> None:
+        import gymnasium as gym
+
+        from rtv3_maniskill import ENV_ID
+        from rtv3_maniskill.datasets.demonstrations import DemonstrationRecorder
+        from rtv3_maniskill.datasets.planner import PandaPlanner
+        from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_speed_limits
+
+        self.config = config
+        self.policy = policy
+        sizes = dict(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps),
+                     scene_type=config.scene_type, object_source=config.objects)
+        self.env = SharedControlEnv(rendered_context=True, max_episode_steps=config.max_steps + 10, **sizes)
+        self.speed_limits = controller_speed_limits(self.env.base)
+        expert_env = gym.make(ENV_ID, obs_mode="state_dict", control_mode="pd_joint_pos_vel",
+                              reconfiguration_freq=0, max_episode_steps=10_000, **sizes)
+        self.recorder = DemonstrationRecorder(expert_env, PandaPlanner, plan_timeout=config.plan_timeout)
+        self.scene_seed: int | None = None
+
+    def load_scene(self, scene_seed: int) -> list[int]:
+        """Build the scene in both envs; the expert records with the rollout's rendered cloud.
+        Returns the feasible goals (:func:`~rtv3_maniskill.experiments.goals.check_scene_goals`, the
+        benchmark's rule), candidate indices."""
+        from rtv3_maniskill.experiments.goals import check_scene_goals
+
+        self.env.reset(seed=scene_seed)
+        self.recorder.load_scene(scene_seed)
+        cloud, mask = self.env.rendered_point_cloud
+        self.recorder.set_scene_point_cloud(cloud[0].cpu().numpy(), mask[0].cpu().numpy())
+        self.scene_seed = scene_seed
+        checks = check_scene_goals(self.recorder.base, self.recorder.planner, seed=scene_seed)
+        return [i for i, check in enumerate(checks) if check == "feasible"]
+
+    def rollout(self, grasp: int, driver: str, seed: int) -> Rollout:
+        """One closed-loop rollout of ``driver`` towards grasp ``grasp`` of the loaded scene."""
+        import torch
+
+        from rtv3_maniskill import features
+        from rtv3_maniskill.datasets.demonstrations import random_start_configuration, state_vector
+        from rtv3_maniskill.experiments.episodes import make_method
+        from rtv3_maniskill.experiments.planning import context_mask
+        from rtv3_maniskill.shared_control.simulated_users import make_user
+        from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
+
+        method_name, user_name = parse_driver(driver)
+        rng = np.random.default_rng(seed)
+        if method_name == "prior":  # the planning benchmark's setting: a start drawn around the ready pose
+            kin = self.recorder.planner.kin
+            q0 = None
+            for _ in range(10):
+                q = random_start_configuration(rng, kin.lower + 1e-3, kin.upper - 1e-3)
+                if self.recorder.planner.is_collision_free(q):
+                    q0 = q
+                    break
+            q0 = READY_QPOS if q0 is None else q0
+        else:  # the shared-control benchmark's: the ready pose
+            q0 = READY_QPOS
+        method = None if method_name == "prior" else make_method(method_name, self.speed_limits, policy=self.policy)
+        if method is not None:
+            self.env.method = method
+        obs, info = self.env.reset(seed=self.scene_seed, options=dict(target_grasp_index=grasp, init_qpos=q0))
+        if method_name == "prior":
+            self.policy.reset()
+        user = None if user_name is None else make_user(user_name, seed=int(rng.integers(2**31)))
+        if user is not None:
+            user.reset(self.env.user_goal())
+        states, qpos = [state_vector(obs)], [obs["agent"]["qpos"][0, :7].cpu().numpy()]
+        outcome = "success" if bool(info["success"][0]) else "timeout"
+        steps = 0
+        while outcome != "success" and steps < self.config.max_steps:
+            if user is None:
+                observation = features.observation_from_env(obs)
+                observation[features.GRASPS_MASK] = context_mask(observation[features.GRASPS_MASK], grasp, "target")
+                twist = self.policy.select_action(observation).reshape(6)
+                obs, _, _, _, info = self.env.step_scripted(twist.double(), mode="autonomous")
+            else:
+                tcp = self.env.base.tcp_pose_matrix[0].detach().cpu().double()
+                obs, _, _, _, info = self.env.step(user(tcp))
+            steps += 1
+            states.append(state_vector(obs))
+            qpos.append(obs["agent"]["qpos"][0, :7].cpu().numpy())
+            if bool(info["collision"][0]):
+                outcome = "collision"
+                break
+            if bool(info["success"][0]):
+                outcome = "success"
+        return Rollout(np.stack(states).astype(np.float32), np.stack(qpos).astype(np.float64), outcome, steps,
+                       dict(driver=driver, start=q0.tolist()))
+
+    def relabel(self, rollout: Rollout, grasp: int, step: int, seed: int):
+        """The expert's demonstration from visited step ``step`` (an ``Episode``), or a failure reason."""
+        from rtv3_maniskill import features
+
+        q = rollout.qpos[step]
+        if not self.recorder.planner.is_collision_free(q):
+            return "visited_in_collision"
+        episode = self.recorder.record_from(q, grasp, seed)
+        if isinstance(episode, str):
+            return episode
+        episode.state[0] = rollout.states[step]  # the visited state, with the rollout's own velocity
+        episode.history_prefix = rollout.states[max(0, step - (features.HISTORY_STEPS - 1)) : step].copy()
+        episode.info = dict(episode.info, dagger=dict(driver=rollout.info["driver"], step=int(step),
+                                                      rollout_outcome=rollout.outcome,
+                                                      rollout_steps=int(rollout.steps)))
+        return episode
+
+    def close(self) -> None:
+        self.env.close()
+        self.recorder.env.close()
+
+
+def rollout_variant(driver_index: int, step: int | None = None) -> str:
+    """Staging key suffix: ``r{driver}`` for a rollout, ``r{driver}t{step}`` for one of its relabels."""
+    return f"r{driver_index}" if step is None else f"r{driver_index}t{step:03d}"
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(config: DaggerConfig) -> None:
+    import torch
+
+    from rtv3_maniskill.datasets.lerobot_export import StagingArea
+    from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
+
+    torch.set_num_threads(1)
+    policy = load_policy(config.policy_path)
+    _WORKER.update(config=config, collector=DaggerCollector(config, policy), staging=StagingArea(config.output))
+
+
+def _run_scene(job: tuple[int, int, list[str]]) -> dict[str, Any]:
+    """Roll out and relabel every not-yet-finished target of one scene; counts for the summary."""
+    from rtv3_maniskill.datasets.lerobot_export import StagingArea
+    from rtv3_maniskill.records import select_targets
+
+    scene_index, scene_seed, done = job
+    config: DaggerConfig = _WORKER["config"]
+    collector: DaggerCollector = _WORKER["collector"]
+    staging: StagingArea = _WORKER["staging"]
+    done_keys = set(done)
+    start = time.perf_counter()
+    counts: Counter = Counter()
+    valid = collector.load_scene(scene_seed)
+    targets = select_targets(valid, config.targets_per_scene, config.seed, scene_seed, DAGGER_SALT)
+    for j, grasp in enumerate(targets):
+        d = (scene_index * (config.targets_per_scene or len(targets)) + j) % len(config.drivers)
+        if StagingArea.key(scene_seed, grasp, rollout_variant(d)) in done_keys:
+            continue
+        seed = scene_seed * 1000 + grasp
+        rollout = collector.rollout(grasp, config.drivers[d], seed)
+        counts[f"rollout_{rollout.outcome}"] += 1
+        rng = np.random.default_rng([config.seed, scene_seed, grasp, d])
+        for step in relabel_steps(rollout, config.relabels_per_rollout, config.min_step, rng):
+            variant = rollout_variant(d, step)
+            if StagingArea.key(scene_seed, grasp, variant) in done_keys:
+                continue
+            result = collector.relabel(rollout, grasp, step, seed * 1000 + step)
+            if isinstance(result, str):
+                staging.log_attempt(scene_seed, grasp, result, variant=variant)
+                counts[result] += 1
+            else:
+                staging.save(result, variant=variant)
+                staging.log_attempt(scene_seed, grasp, "success", len(result.state), variant=variant)
+                counts["success"] += 1
+        staging.log_attempt(scene_seed, grasp, f"rollout_{rollout.outcome}", rollout.steps, variant=rollout_variant(d))
+    return dict(scene=scene_seed, counts=dict(counts), seconds=time.perf_counter() - start)
+
+
+def run_dagger(config: DaggerConfig, progress: bool = True) -> dict[str, Any]:
+    """Run (or resume) one DAgger round; exports the LeRobot dataset and returns the summary
+    (also written to ``rtv3_summary.json``)."""
+    import multiprocessing as mp
+
+    from tqdm import tqdm
+
+    from rtv3_maniskill.datasets.lerobot_export import StagingArea, export_lerobot_dataset
+    from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT
+    from rtv3_maniskill.records import scene_seeds
+
+    policy_config = json.loads(((config.policy_path or SHIPPED_CHECKPOINT) / "config.json").read_text())
+    num_points, max_grasps = int(policy_config["num_points"]), int(policy_config["max_grasps"])
+    with StagingArea(config.output, settings=config.settings(num_points, max_grasps)) as staging:
+        attempted = staging.attempts()
+    jobs = []
+    for i, s in enumerate(scene_seeds(config.seed, config.scenes)):
+        prefix = StagingArea.scene_prefix(s)
+        jobs.append((i, s, sorted(k for k in attempted if k.startswith(prefix))))
+    total: Counter = Counter()
+    start = time.perf_counter()
+    worker_seconds = 0.0
+    bar = tqdm(total=len(jobs), desc="dagger scenes", unit="scene", disable=not progress)
+    if config.workers == 1:
+        _init_worker(config)
+        results = map(_run_scene, jobs)
+    else:
+        pool = mp.get_context("spawn").Pool(config.workers, initializer=_init_worker, initargs=(config,))
+        results = pool.imap_unordered(_run_scene, jobs)
+    for result in results:
+        total.update(result["counts"])
+        worker_seconds += result["seconds"]
+        bar.update(1)
+        bar.set_postfix(relabels=total["success"], rollouts=sum(v for k, v in total.items() if k.startswith("roll")))
+    bar.close()
+    if config.workers > 1:
+        pool.close()
+        pool.join()
+    elif "collector" in _WORKER:
+        _WORKER.pop("collector").close()
+        _WORKER.pop("staging").close()
+    with StagingArea(config.output) as staging:
+        rows = list(staging.attempts().values())
+    frames = export_lerobot_dataset(config.output, num_points, max_grasps, progress=progress)
+    outcomes = Counter(r["outcome"] for r in rows)
+    summary = dict(
+        scenes=len({r["scene"] for r in rows}),
+        rollouts={k: v for k, v in outcomes.items() if k.startswith("rollout_")},
+        relabelled_trajectories=outcomes.get("success", 0),
+        relabel_failures={k: v for k, v in outcomes.items() if k != "success" and not k.startswith("rollout_")},
+        frames=frames,
+        this_run=dict(total),
+        this_run_wall_s=time.perf_counter() - start,
+        this_run_worker_s=worker_seconds,
+        trajectories_per_core_hour=total["success"] / max(worker_seconds, 1e-9) * 3600,
+        config={k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(config).items()},
+    )
+    (config.output / "rtv3_summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+__all__ = ["DEFAULT_DRIVERS", "DaggerCollector", "DaggerConfig", "Rollout", "parse_driver", "relabel_steps",
+           "run_dagger"]

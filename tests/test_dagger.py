@@ -1,0 +1,92 @@
+"""DAgger with the planner as the expert: rollouts, relabels from visited states, the stored histories."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from rtv3_maniskill import features
+from rtv3_maniskill.datasets.lerobot_export import state_histories
+from rtv3_maniskill.experiments.dagger import DaggerConfig, Rollout, parse_driver, relabel_steps
+
+
+def test_state_histories_hold_the_prefix_before_the_first_frame():
+    states = np.arange(4 * 27, dtype=np.float32).reshape(4, 27)
+    prefix = -np.arange(1, 4)[:, None].repeat(27, 1).astype(np.float32)[::-1]  # rows -3, -2, -1
+    hist = state_histories(states, steps=8, prefix=prefix)
+    assert hist.shape == (4, 8, 27)
+    # frame 0: the earliest prefix state repeated, the prefix, then the frame itself
+    np.testing.assert_array_equal(hist[0, :, 0], [-3, -3, -3, -3, -3, -2, -1, states[0, 0]])
+    np.testing.assert_array_equal(hist[2, -3:], states[:3])
+    # without a prefix: the first state repeated (LeRobot's padding), as before
+    np.testing.assert_array_equal(state_histories(states, steps=8)[0], np.repeat(states[:1], 8, 0))
+    # a prefix longer than T - 1 keeps its last T - 1 states
+    long = np.full((20, 27), 7.0, np.float32)
+    long[-7:] = 5.0
+    np.testing.assert_array_equal(state_histories(states, steps=8, prefix=long)[0, :7, 0], [5.0] * 7)
+
+
+def test_relabel_steps_spread_over_the_rollout_and_skip_the_contact_state():
+    rollout = Rollout(np.zeros((61, 27)), np.zeros((61, 7)), "collision", steps=60)
+    steps = relabel_steps(rollout, 3, 2, np.random.default_rng(0))
+    assert len(steps) == 3 and steps == sorted(steps)
+    assert steps[0] <= 21 and steps[-1] >= 40 and max(steps) <= 59  # one per third; step 60 touched something
+    short = Rollout(np.zeros((3, 27)), np.zeros((3, 7)), "success", steps=2)
+    assert relabel_steps(short, 3, 2, np.random.default_rng(0)) == [2]
+
+
+def test_unknown_driver_names_the_known_ones(tmp_path):
+    assert parse_driver("prior") == ("prior", None)
+    assert parse_driver("RTV3:single-dof") == ("rtv3", "single_dof")
+    with pytest.raises(ValueError, match="METHOD:USER"):
+        parse_driver("ho:noisy")
+    with pytest.raises(ValueError, match="noisy"):
+        DaggerConfig(output=tmp_path / "d", drivers=("direct:sleepy",))
+
+
+def test_relabelled_episode_keeps_the_rollout_history_and_the_experts_actions(tmp_path):
+    """A Direct rollout of the ideal user, relabelled at a visited step: the stored episode starts at the
+    visited state, its history holds the rollout's states before it, its actions are the expert's plan,
+    and the rollout's own frames never become dataset frames."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from rtv3_maniskill.datasets.lerobot_export import REPO_ID, StagingArea, export_lerobot_dataset
+    from rtv3_maniskill.experiments.dagger import DaggerCollector, rollout_variant
+    from rtv3_maniskill.policies.rtv3 import load_policy
+
+    policy = load_policy()
+    config = DaggerConfig(output=tmp_path / "dagger", drivers=("direct:ideal",), scene_type="packed")
+    collector = DaggerCollector(config, policy)
+    try:
+        goals = collector.load_scene(500001)
+        assert goals, "the scene has feasible goals"
+        rollout = collector.rollout(goals[0], "direct:ideal", seed=1)
+        assert rollout.outcome == "success" and rollout.steps >= 12
+        assert len(rollout.states) == rollout.steps + 1
+        step = 10
+        episode = collector.relabel(rollout, goals[0], step, seed=2)
+        assert not isinstance(episode, str), episode
+    finally:
+        collector.close()
+    np.testing.assert_array_equal(episode.state[0], rollout.states[step])
+    np.testing.assert_array_equal(episode.history_prefix, rollout.states[step - 7 : step])
+    # the expert's actions: a plan from the visited state to the pre-grasp, ending at rest
+    assert np.abs(episode.action[-1]).max() == 0.0 and np.abs(episode.action[:5]).max() > 1e-3
+    assert episode.info["dagger"]["step"] == step
+
+    config.output.mkdir(parents=True)
+    with StagingArea(config.output, settings=config.settings(policy.config.num_points,
+                                                             policy.config.max_grasps)) as staging:
+        staging.save(episode, variant=rollout_variant(0, step))
+        staging.log_attempt(episode.scene_seed, episode.target_grasp_index, "success", len(episode.state),
+                            variant=rollout_variant(0, step))
+    frames = export_lerobot_dataset(config.output, policy.config.num_points, policy.config.max_grasps,
+                                    progress=False)
+    assert frames == len(episode.state)  # no rollout frame is a frame (an action target)
+    ds = LeRobotDataset(REPO_ID, root=config.output)
+    first = features.unflatten(features.STATE_HISTORY, ds[0][features.STATE_HISTORY].numpy())
+    np.testing.assert_allclose(first[:-1], rollout.states[step - 7 : step], atol=1e-6)
+    np.testing.assert_allclose(ds[0][features.ACTION].numpy(), episode.action[0], atol=1e-6)
+    assert json.loads((config.output / "rtv3_generation.json").read_text())["source"] == "dagger"
