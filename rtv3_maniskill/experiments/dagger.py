@@ -186,7 +186,6 @@ class DaggerCollector:
 
     def rollout(self, grasp: int, driver: str, seed: int) -> Rollout:
         """One closed-loop rollout of ``driver`` towards grasp ``grasp`` of the loaded scene."""
-        import torch
 
         from rtv3_maniskill import features
         from rtv3_maniskill.datasets.demonstrations import random_start_configuration, state_vector
