@@ -35,6 +35,7 @@ import numpy as np
 
 from rtv3_maniskill import features
 from rtv3_maniskill.datasets.demonstrations import END_AT, HOLD_STEPS, Episode
+from rtv3_maniskill.datasets.episode_stats import fast_episode_writes
 
 STAGING = "rtv3_staging"
 SETTINGS = "rtv3_generation.json"
@@ -259,7 +260,6 @@ def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progres
         raise ValueError(f"end_at must be one of {END_AT}, got {end_at!r}")
     import datasets as hf_datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
-    from tqdm import tqdm
 
     hf_datasets.disable_progress_bars()
 
@@ -275,6 +275,21 @@ def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progres
         REPO_ID, fps=features.FPS, features=dataset_features(num_points, max_grasps), root=tmp_root, robot_type="panda",
         use_videos=False,
     )
+    with fast_episode_writes(dataset):
+        frames = _add_episodes(dataset, staging, files, end_at, progress)
+    dataset.finalize()
+    for name in ("meta", "data"):
+        if (root / name).exists():
+            shutil.rmtree(root / name)
+        os.replace(tmp_root / name, root / name)
+    shutil.rmtree(tmp_root, ignore_errors=True)
+    return frames
+
+
+def _add_episodes(dataset, staging: StagingArea, files: list[Path], end_at: str, progress: bool) -> int:
+    """Append the staged episodes ``files`` to ``dataset`` (one LeRobot episode each); returns frames."""
+    from tqdm import tqdm
+
     frames = 0
     for path in tqdm(files, desc="export to LeRobot", disable=not progress, unit="episode"):
         ep = staging.load(path)
@@ -301,10 +316,4 @@ def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progres
             )
             frames += 1
         dataset.save_episode()
-    dataset.finalize()
-    for name in ("meta", "data"):
-        if (root / name).exists():
-            shutil.rmtree(root / name)
-        os.replace(tmp_root / name, root / name)
-    shutil.rmtree(tmp_root, ignore_errors=True)
     return frames
