@@ -16,16 +16,16 @@
 #      rotation conditioned on a sampled translation, twist noise on the history), STEPS steps,
 #      checkpoints every SAVE_FREQ steps; resume an interrupted run with
 #      lerobot-train --config_path=outputs/train_v2/checkpoints/last/pretrained_model/train_config.json --resume=true
-#   5. the chosen checkpoint (CKPT_STEP, picked on validation planning scenes 800000..800019,
+#   5. the chosen checkpoint (CKPT_STEP: 500 of 500 / 1,000 / 1,500, picked on validation planning scenes 800000..800019,
 #      never the test blocks) is copied into the package.
 # Every step is resumable or skipped when its output exists. Environment: STEPS, BATCH, SAVE_FREQ,
 # CKPT_STEP, GEN_SCENES, DAGGER_SCENES trade time for quality.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-STEPS=${STEPS:-6000}
+STEPS=${STEPS:-1500}
 BATCH=${BATCH:-64}
-SAVE_FREQ=${SAVE_FREQ:-1000}
-CKPT_STEP=${CKPT_STEP:-last}
+SAVE_FREQ=${SAVE_FREQ:-500}
+CKPT_STEP=${CKPT_STEP:-000500}
 GEN_SCENES=${GEN_SCENES:-600}
 DAGGER_SCENES=${DAGGER_SCENES:-150}
 START_COMMIT=3da66a5
