@@ -66,7 +66,7 @@ def test_keyboard_session_under_xvfb(tmp_path):
         assert lines and "started" in lines[-1], "".join(lines)[-3000:]
         window = _xdotool(display, "search", "--sync", "--class", "rtv3").split()[0]
         _xdotool(display, "windowfocus", "--sync", window)
-        for key, seconds in (("w", 3.0), ("q", 2.5)):
+        for key, seconds in (("w", 1.0), ("q", 1.0)):  # short: the trial must still be running at F12
             _xdotool(display, "keydown", key)
             time.sleep(seconds)
             _xdotool(display, "keyup", key)
