@@ -12,12 +12,13 @@
 #      teleoperation; at visited states the planner re-plans to the target's pre-grasp, and the
 #      stored history is the user's own motion, so the prior learns to read a goal from it;
 #   3. the two datasets merged with LeRobot's merge_datasets (scripts/merge_datasets.py);
-#   4. lerobot-train fine-tunes the starting weights on the merged data (free-running decoder,
+#   4. lerobot-train fine-tunes the starting weights on the merged data at learning rate 1e-3 (free-running decoder,
 #      rotation conditioned on a sampled translation, twist noise on the history), STEPS steps,
 #      checkpoints every SAVE_FREQ steps; resume an interrupted run with
 #      lerobot-train --config_path=outputs/train_v2/checkpoints/last/pretrained_model/train_config.json --resume=true
-#   5. the chosen checkpoint (CKPT_STEP: 500 of 500 / 1,000 / 1,500, picked on validation planning scenes 800000..800019,
-#      never the test blocks) is copied into the package.
+#   5. a second fine-tune from checkpoint 500 of step 4 at learning rate 3e-4 (1,000 steps);
+#   6. the chosen checkpoint (CKPT_STEP: 500 of step 5, picked among the five on validation planning
+#      scenes 800000..800019, never the test blocks) is copied into the package.
 # Every step is resumable or skipped when its output exists. Environment: STEPS, BATCH, SAVE_FREQ,
 # CKPT_STEP, GEN_SCENES, DAGGER_SCENES trade time for quality.
 set -euo pipefail
@@ -57,6 +58,18 @@ if [[ ! -d outputs/train_v2/checkpoints ]]; then
       --num_workers=1 --save_freq="$SAVE_FREQ" --log_freq=100 --steps="$STEPS" --output_dir=outputs/train_v2
 fi
 
-ckpt=outputs/train_v2/checkpoints/$CKPT_STEP/pretrained_model
+# Stage 2: from checkpoint 500 of stage 1 (the best of 500 / 1,000 / 1,500 on validation), the same
+# data at learning rate 3e-4.
+if [[ ! -d outputs/train_v2_lowlr/checkpoints ]]; then
+  .venv/bin/lerobot-train --policy.type=rtv3 \
+      --policy.init_weights_from=outputs/train_v2/checkpoints/000500/pretrained_model \
+      --policy.point_stem_poolings=0 --policy.teacher_forcing=false --policy.rotation_conditioning=sampled \
+      --policy.twist_noise_linear=0.05 --policy.twist_noise_angular=0.25 --policy.optimizer_lr=0.0003 \
+      --dataset.repo_id=local/rtv3_grasp_clutter --dataset.root=data/train_v2_dagger \
+      --policy.push_to_hub=false --policy.device=cpu --wandb.enable=false --batch_size="$BATCH" \
+      --num_workers=1 --save_freq="$SAVE_FREQ" --log_freq=100 --steps=1000 --output_dir=outputs/train_v2_lowlr
+fi
+
+ckpt=outputs/train_v2_lowlr/checkpoints/$CKPT_STEP/pretrained_model
 rm -rf rtv3_maniskill/checkpoints/rtv3_grasp_clutter
 cp -r "$ckpt" rtv3_maniskill/checkpoints/rtv3_grasp_clutter
