@@ -637,6 +637,7 @@ def test_twist_noise_and_sampled_rotation_conditioning_act_in_training_only():
     variants = {
         "twist_noise": dict(twist_noise_linear=0.05, twist_noise_angular=0.2),
         "sampled": dict(rotation_conditioning="sampled"),
+        "rotation_resample": dict(history_rotation_resample_prob=1.0),
     }
     base.train()
     torch.manual_seed(0)
@@ -654,6 +655,35 @@ def test_twist_noise_and_sampled_rotation_conditioning_act_in_training_only():
         policy.eval()
         policy.reset()
         assert torch.allclose(policy.predict_action_chunk(observation_only(batch)), ref_chunk, atol=1e-6), name
+
+
+def test_resampled_past_rotation_is_a_consistent_turn_into_the_current_pose():
+    """The augmented history is a physically consistent motion: it ends at the current pose, its
+    body twists integrate to its poses, positions are kept, and unselected samples are untouched."""
+    from rtv3_maniskill.policies.rtv3.egocentric import resample_past_rotation
+
+    torch.manual_seed(4)
+    batch, steps, dt = 3, 8, ft.DT
+    start = se3.se3_exp(torch.randn(batch, 6, dtype=torch.float64))
+    twists = torch.randn(batch, steps, 6, dtype=torch.float64) * 0.2
+    poses = se3.integrate_body_twists(start, twists[:, :-1], dt)  # (B, T-1): poses after each of the first twists
+    poses = torch.cat([start[:, None], poses], 1)  # (B, T)
+    selected = torch.tensor([True, False, True])
+    new_poses, new_twists = resample_past_rotation(poses, twists, 1.0, selected, dt)
+    assert torch.equal(new_poses[1], poses[1]) and torch.equal(new_twists[1], twists[1])
+    assert torch.allclose(new_poses[:, -1], poses[:, -1])
+    assert torch.allclose(new_poses[..., :3, 3], poses[..., :3, 3])
+    for b in (0, 2):
+        rate = new_twists[b, :, 3:]
+        assert torch.allclose(rate, rate[:1].expand_as(rate)) and rate.abs().max() <= 1.0
+        assert not torch.allclose(new_poses[b, 0, :3, :3], poses[b, 0, :3, :3], atol=1e-3)
+        # stepping the new body twists from each new pose reaches the next one (rotation exactly,
+        # translation to first order in dt, as the world-frame velocity is kept)
+        stepped = se3.integrate_body_twists(new_poses[b, :-1], new_twists[b, :-1, None], dt)[:, 0]
+        assert torch.allclose(stepped[:, :3, :3], new_poses[b, 1:, :3, :3], atol=1e-9)
+        original = se3.integrate_body_twists(poses[b, :-1], twists[b, :-1, None], dt)[:, 0]
+        assert torch.allclose(stepped[:, :3, 3] - new_poses[b, :-1, :3, 3],
+                              original[:, :3, 3] - poses[b, :-1, :3, 3], atol=2e-3)
 
 
 # ----------------------------------------------------------------------------- ablations

@@ -102,6 +102,11 @@ class RTV3Config(PreTrainedConfig):
             twists, the current one (a_{-1}, fed to the decoder) included; the targets stay clean, so
             the prior learns to return to the expert's motion from a perturbed one instead of copying
             the last twist (closed loop, its own errors come back as the current twist). 0 disables.
+        history_rotation_resample_prob / _speed: training-time probability that a sample's past
+            orientations (and the history's angular twists, the decoder's a_{-1} included) are replaced
+            by a turn at a random constant rate up to ``_speed`` rad/s per axis ending at the current
+            orientation; the targets stay the expert's. Without it the prior continues its own past turn
+            in closed loop (teacher-forced rotation cosine 0.99, closed loop ~0). 0 disables.
         rotation_conditioning: what the rotation head p(w | h, z, v) is conditioned on in training:
             "demonstrated" = the demonstrated v; "sampled" = a translation drawn from the predicted
             p(v | h, z) (the paper's two-stage sampling, a regulariser: at inference the head is
@@ -212,6 +217,8 @@ class RTV3Config(PreTrainedConfig):
     history_noise_rotation: float = 0.0035
     twist_noise_linear: float = 0.0
     twist_noise_angular: float = 0.0
+    history_rotation_resample_prob: float = 0.0
+    history_rotation_resample_speed: float = 1.0
     rotation_conditioning: str = "demonstrated"
 
     # Optimiser preset.
@@ -292,10 +299,13 @@ class RTV3Config(PreTrainedConfig):
             raise ValueError(f"log_sigma_min ({self.log_sigma_min}) must be < log_sigma_max ({self.log_sigma_max})")
         for name in ("kl_weight", "kl_weight_start", "kl_min", "mutual_information_weight",
                      "history_noise_translation", "history_noise_rotation", "twist_noise_linear",
-                     "twist_noise_angular", "transformer_dropout",
+                     "twist_noise_angular", "transformer_dropout", "history_rotation_resample_speed",
                      "optimizer_weight_decay"):
             if getattr(self, name) < 0:
                 raise ValueError(f"RTV3Config.{name} must be >= 0, got {getattr(self, name)}")
+        if not 0.0 <= self.history_rotation_resample_prob <= 1.0:
+            raise ValueError("RTV3Config.history_rotation_resample_prob must be in [0, 1], "
+                             f"got {self.history_rotation_resample_prob}")
         if self.rotation_conditioning not in ROTATION_CONDITIONING_MODES:
             raise ValueError(
                 f"rotation_conditioning must be one of {ROTATION_CONDITIONING_MODES}, "

@@ -46,6 +46,38 @@ def perturb_twists(twists: torch.Tensor, linear: float, angular: float) -> torch
     return twists + uniform_se3_noise(twists, linear, angular)
 
 
+def resample_past_rotation(
+    poses: torch.Tensor, twists: torch.Tensor, max_speed: float, selected: torch.Tensor, dt: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Replace the past orientations of ``selected`` samples by a turn at a random constant rate.
+
+    Training augmentation against copying the past rotation (``RTV3Config.history_rotation_resample_prob``):
+    the sample's history then says "I was turning about ``w``", with ``w ~ U(-max_speed, max_speed)^3``
+    rad/s, while its targets stay the expert's turn toward the goal, so the rotation head has to read
+    the goal rather than continue the past. Orientations end at the current one,
+    ``R'_t = R_0 Exp(w t dt)`` for ``t = -T+1 .. 0``; positions and world-frame linear velocities are
+    kept (the body-frame ``v`` is re-expressed in the new orientations).
+
+    Args:
+        poses: ``(B, T, 4, 4)`` world EE poses, the last one current.
+        twists: ``(B, T, 6)`` body twists of those poses (m/s, rad/s).
+        selected: ``(B,)`` bool, which samples to change.
+    Returns:
+        ``(poses, twists)`` with the same shapes; unselected samples unchanged.
+    """
+    steps = poses.shape[1]
+    rate = (torch.rand(poses.shape[0], 3, dtype=poses.dtype, device=poses.device) * 2 - 1) * max_speed
+    times = torch.arange(1 - steps, 1, dtype=poses.dtype, device=poses.device) * dt  # (T,) <= 0
+    rotation = poses[:, -1:, :3, :3] @ se3.so3_exp(rate[:, None, :] * times[None, :, None])  # (B, T, 3, 3)
+    linear_world = (poses[..., :3, :3] @ twists[..., :3, None].to(poses.dtype))[..., 0]
+    linear = (rotation.transpose(-1, -2) @ linear_world[..., None])[..., 0]
+    new_twists = torch.cat([linear, rate[:, None, :].expand(-1, steps, -1)], -1).to(twists.dtype)
+    new_poses = poses.clone()
+    new_poses[..., :3, :3] = rotation
+    pick = selected[:, None]
+    return (torch.where(pick[..., None, None], new_poses, poses), torch.where(pick[..., None], new_twists, twists))
+
+
 def history_dynamics(
     relative: torch.Tensor, body_twists: torch.Tensor, log_relative: torch.Tensor | None = None
 ) -> torch.Tensor:

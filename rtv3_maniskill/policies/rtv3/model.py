@@ -110,6 +110,11 @@ class RTV3Model(nn.Module):
         c = self.config
         states = inputs.states
         poses = egocentric.state_poses(states)  # (B, T, 4, 4) world
+        twists = states[..., features.EE_TWIST]
+        if augment and poses.shape[1] > 1 and c.history_rotation_resample_prob > 0:
+            selected = torch.rand(poses.shape[0], device=poses.device) < c.history_rotation_resample_prob
+            poses, twists = egocentric.resample_past_rotation(poses, twists, c.history_rotation_resample_speed,
+                                                              selected, features.DT)
         if augment and poses.shape[1] > 1 and (c.history_noise_translation > 0 or c.history_noise_rotation > 0):
             past = egocentric.perturb_poses(poses[:, :-1], c.history_noise_translation, c.history_noise_rotation)
             poses = torch.cat([past, poses[:, -1:]], 1)
@@ -122,7 +127,6 @@ class RTV3Model(nn.Module):
             relative = torch.cat([relative, grasp_relative], 1)
         logs = se3.se3_log(relative)  # one batched log map for history and grasps
         steps = poses.shape[1]
-        twists = states[..., features.EE_TWIST]
         if augment and (c.twist_noise_linear > 0 or c.twist_noise_angular > 0):
             twists = egocentric.perturb_twists(twists, c.twist_noise_linear, c.twist_noise_angular)
         x = egocentric.history_dynamics(relative[:, :steps], twists, logs[:, :steps])  # x_{-T+1:0}
