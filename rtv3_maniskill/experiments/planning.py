@@ -91,7 +91,8 @@ def trace_step(step: int, tcp_pose: torch.Tensor, grasp_pose: torch.Tensor, twis
     """One row of a trial trace: the TCP's translation (m) and rotation (deg) error to the grasp's
     pre-grasp (the nearer of it and its pi-about-z twin), the commanded speeds (m/s, rad/s), and
     how well the command points at that pre-grasp: the cosine of ``v`` and of ``w`` with the two
-    halves of ``T_tcp^-1 T_pre`` (its translation and its rotation vector, TCP frame; +1 = straight at it, -1 = away)."""
+    halves of ``T_tcp^-1 T_pre`` (its translation and its rotation vector, TCP frame; +1 = straight
+    at it, -1 = away)."""
     pre = pregrasp_poses(grasp_pose.double())
     target = min((pre, se3.rotate_about_z(pre, math.pi)),
                  key=lambda t: float(se3.so3_log(se3.relative_transform(t, tcp_pose.double())[:3, :3]).norm()))
