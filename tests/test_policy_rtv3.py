@@ -657,9 +657,11 @@ def test_twist_noise_and_sampled_rotation_conditioning_act_in_training_only():
         assert torch.allclose(policy.predict_action_chunk(observation_only(batch)), ref_chunk, atol=1e-6), name
 
 
-def test_resampled_past_rotation_is_a_consistent_turn_into_the_current_pose():
+@pytest.mark.parametrize("mode", ["axis", "rate"])
+def test_resampled_past_rotation_is_a_consistent_turn_into_the_current_pose(mode: str):
     """The augmented history is a physically consistent motion: it ends at the current pose, its
-    body twists integrate to its poses, positions are kept, and unselected samples are untouched."""
+    body twists integrate to its poses, positions are kept, and unselected samples are untouched;
+    "axis" keeps the past turn's speeds, "rate" turns at one constant rate."""
     from rtv3_maniskill.policies.rtv3.egocentric import resample_past_rotation
 
     torch.manual_seed(4)
@@ -669,13 +671,17 @@ def test_resampled_past_rotation_is_a_consistent_turn_into_the_current_pose():
     poses = se3.integrate_body_twists(start, twists[:, :-1], dt)  # (B, T-1): poses after each of the first twists
     poses = torch.cat([start[:, None], poses], 1)  # (B, T)
     selected = torch.tensor([True, False, True])
-    new_poses, new_twists = resample_past_rotation(poses, twists, 1.0, selected, dt)
+    new_poses, new_twists = resample_past_rotation(poses, twists, selected, mode, 1.0, dt)
     assert torch.equal(new_poses[1], poses[1]) and torch.equal(new_twists[1], twists[1])
     assert torch.allclose(new_poses[:, -1], poses[:, -1])
     assert torch.allclose(new_poses[..., :3, 3], poses[..., :3, 3])
     for b in (0, 2):
         rate = new_twists[b, :, 3:]
-        assert torch.allclose(rate, rate[:1].expand_as(rate)) and rate.abs().max() <= 1.0
+        if mode == "rate":
+            assert torch.allclose(rate, rate[:1].expand_as(rate)) and rate.abs().max() <= 1.0
+        else:
+            assert torch.allclose(rate.norm(dim=-1), twists[b, :, 3:].norm(dim=-1))
+            assert not torch.allclose(rate, twists[b, :, 3:], atol=1e-3)
         assert not torch.allclose(new_poses[b, 0, :3, :3], poses[b, 0, :3, :3], atol=1e-3)
         # stepping the new body twists from each new pose reaches the next one (rotation exactly,
         # translation to first order in dt, as the world-frame velocity is kept)
@@ -684,6 +690,10 @@ def test_resampled_past_rotation_is_a_consistent_turn_into_the_current_pose():
         original = se3.integrate_body_twists(poses[b, :-1], twists[b, :-1, None], dt)[:, 0]
         assert torch.allclose(stepped[:, :3, 3] - new_poses[b, :-1, :3, 3],
                               original[:, :3, 3] - poses[b, :-1, :3, 3], atol=2e-3)
+    with pytest.raises(ValueError, match="resample mode"):
+        resample_past_rotation(poses, twists, selected, "spin", 1.0, dt)
+    with pytest.raises(ValueError, match="history_rotation_resample_mode"):
+        RTV3Config(device="cpu", history_rotation_resample_mode="spin")
 
 
 # ----------------------------------------------------------------------------- ablations

@@ -19,12 +19,14 @@ from torch.optim import Optimizer
 from torch.optim.lr_scheduler import LambdaLR
 
 from rtv3_maniskill import features as ft
+from rtv3_maniskill.policies.rtv3.egocentric import HISTORY_ROTATION_RESAMPLE_MODES
 
 GRASP_SUBSET_SIZES = ("uniform", "log_uniform")
 """Distributions of the grasp-subset size (``grasp_subset_sizes``; see ``batch.subsample_grasps``)."""
 
 LATENT_TRAINING_MODES = ("enumerate", "sample")
 ROTATION_CONDITIONING_MODES = ("demonstrated", "sampled")
+
 ENV_STATE = "observation.environment_state"
 """LeRobot's packed environment-state key (``features.pack_context`` layout)."""
 
@@ -102,11 +104,13 @@ class RTV3Config(PreTrainedConfig):
             twists, the current one (a_{-1}, fed to the decoder) included; the targets stay clean, so
             the prior learns to return to the expert's motion from a perturbed one instead of copying
             the last twist (closed loop, its own errors come back as the current twist). 0 disables.
-        history_rotation_resample_prob / _speed: training-time probability that a sample's past
-            orientations (and the history's angular twists, the decoder's a_{-1} included) are replaced
-            by a turn at a random constant rate up to ``_speed`` rad/s per axis ending at the current
-            orientation; the targets stay the expert's. Without it the prior continues its own past turn
-            in closed loop (teacher-forced rotation cosine 0.99, closed loop ~0). 0 disables.
+        history_rotation_resample_prob / _mode / _speed: training-time probability that a sample's
+            past orientations (and the history's angular twists, the decoder's a_{-1} included) are
+            changed so that the past turn does not tell the next one (``egocentric.resample_past_rotation``):
+            ``"axis"`` turns the past turn's axes by one random rotation and keeps its speeds, ``"rate"``
+            replaces it by a constant turn of up to ``_speed`` rad/s per axis. The targets stay the
+            expert's. Without it the prior continues its own past turn in closed loop (teacher-forced
+            rotation cosine 0.99, closed loop ~0). 0 disables.
         rotation_conditioning: what the rotation head p(w | h, z, v) is conditioned on in training:
             "demonstrated" = the demonstrated v; "sampled" = a translation drawn from the predicted
             p(v | h, z) (the paper's two-stage sampling, a regulariser: at inference the head is
@@ -218,6 +222,7 @@ class RTV3Config(PreTrainedConfig):
     twist_noise_linear: float = 0.0
     twist_noise_angular: float = 0.0
     history_rotation_resample_prob: float = 0.0
+    history_rotation_resample_mode: str = "axis"
     history_rotation_resample_speed: float = 1.0
     rotation_conditioning: str = "demonstrated"
 
@@ -306,6 +311,9 @@ class RTV3Config(PreTrainedConfig):
         if not 0.0 <= self.history_rotation_resample_prob <= 1.0:
             raise ValueError("RTV3Config.history_rotation_resample_prob must be in [0, 1], "
                              f"got {self.history_rotation_resample_prob}")
+        if self.history_rotation_resample_mode not in HISTORY_ROTATION_RESAMPLE_MODES:
+            raise ValueError(f"history_rotation_resample_mode must be one of {HISTORY_ROTATION_RESAMPLE_MODES}, "
+                             f"got {self.history_rotation_resample_mode!r}")
         if self.rotation_conditioning not in ROTATION_CONDITIONING_MODES:
             raise ValueError(
                 f"rotation_conditioning must be one of {ROTATION_CONDITIONING_MODES}, "

@@ -113,8 +113,10 @@ class RTV3Model(nn.Module):
         twists = states[..., features.EE_TWIST]
         if augment and poses.shape[1] > 1 and c.history_rotation_resample_prob > 0:
             selected = torch.rand(poses.shape[0], device=poses.device) < c.history_rotation_resample_prob
-            poses, twists = egocentric.resample_past_rotation(poses, twists, c.history_rotation_resample_speed,
-                                                              selected, features.DT)
+            poses, twists = egocentric.resample_past_rotation(
+                poses, twists, selected, c.history_rotation_resample_mode, c.history_rotation_resample_speed,
+                features.DT,
+            )
         if augment and poses.shape[1] > 1 and (c.history_noise_translation > 0 or c.history_noise_rotation > 0):
             past = egocentric.perturb_poses(poses[:, :-1], c.history_noise_translation, c.history_noise_rotation)
             poses = torch.cat([past, poses[:, -1:]], 1)
