@@ -15,6 +15,7 @@ import argparse
 import csv
 from pathlib import Path
 
+import numpy as np
 import torch
 
 
@@ -58,8 +59,11 @@ def main() -> None:
                 writer = csv.DictWriter(f, fieldnames=list(trace[0]) if trace else ["step"])
                 writer.writeheader()
                 writer.writerows(trace)
+            cos_v = float(np.median([r["linear_alignment"] for r in trace])) if trace else float("nan")
+            cos_w = float(np.median([r["angular_alignment"] for r in trace])) if trace else float("nan")
             print(f"scene {scene} grasp {grasp}: {row['outcome']} after {row['steps']} steps "
-                  f"(start distance {row['start_distance']}, final {row['final_distance']}); wrote {path}")
+                  f"(start distance {row['start_distance']}, final {row['final_distance']}; median cosine with "
+                  f"the way to the pre-grasp: v {cos_v:.2f}, w {cos_w:.2f}); wrote {path}")
     finally:
         bench.close()
 
@@ -68,14 +72,17 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
+    fig, axes = plt.subplots(1, 4, figsize=(18, 3.8))
     for (scene, grasp), (row, trace) in traces.items():
         steps = [r["step"] for r in trace]
         label = f"{scene}:{grasp} ({row['outcome']})"
         line = axes[0].plot(steps, [r["translation_error"] for r in trace], label=label)[0]
         axes[1].plot(steps, [r["rotation_error_deg"] for r in trace], color=line.get_color())
         axes[2].plot(steps, [r["angular_speed"] for r in trace], color=line.get_color())
-    for ax, title in zip(axes, ("translation error to pre-grasp (m)", "rotation error (deg)", "commanded |w| (rad/s)")):
+        axes[3].plot(steps, [r["angular_alignment"] for r in trace], color=line.get_color())
+    titles = ("translation error to pre-grasp (m)", "rotation error (deg)", "commanded |w| (rad/s)",
+              "cosine of w with the turn to the pre-grasp")
+    for ax, title in zip(axes, titles):
         ax.set_title(title)
         ax.set_xlabel("step (20 Hz)")
         ax.grid(alpha=0.3)
