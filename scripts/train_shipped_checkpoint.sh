@@ -17,8 +17,15 @@
 #      checkpoints every SAVE_FREQ steps; resume an interrupted run with
 #      lerobot-train --config_path=outputs/train_v2/checkpoints/last/pretrained_model/train_config.json --resume=true
 #   5. a second fine-tune from checkpoint 500 of step 4 at learning rate 3e-4 (1,000 steps);
-#   6. the chosen checkpoint (CKPT_STEP: 500 of step 5, picked among the five on validation planning
-#      scenes 800000..800019, never the test blocks) is copied into the package.
+#   6. checkpoint 500 of step 5 (the previous shipped prior, chosen on validation planning scenes
+#      800000..800019, never the test blocks) rolls out alone in a second DAgger round (rtv3 dagger
+#      --drivers prior, scenes 600000..600149): the planner re-plans from where the prior went;
+#   7. with 300 scenes of fresh demonstrations (the first 300 of step 1's numbering, generated
+#      again as data/train_v3_base) merged in, two fine-tunes at 3e-4 with history rotation
+#      resampling (p 0.5, "rate": the past turn replaced by a random one, so the prior reads its
+#      turn from the goal instead of continuing its own): 1,000 steps, then 1,000 more from the
+#      last checkpoint (CKPT_STEP: step 1000 of the second, picked among six on validation);
+#   8. the chosen checkpoint is copied into the package.
 # Every step is resumable or skipped when its output exists. Environment: STEPS, BATCH, SAVE_FREQ,
 # CKPT_STEP, GEN_SCENES, DAGGER_SCENES trade time for quality.
 set -euo pipefail
@@ -26,7 +33,7 @@ cd "$(dirname "$0")/.."
 STEPS=${STEPS:-1500}
 BATCH=${BATCH:-64}
 SAVE_FREQ=${SAVE_FREQ:-500}
-CKPT_STEP=${CKPT_STEP:-000500}
+CKPT_STEP=${CKPT_STEP:-001000}
 GEN_SCENES=${GEN_SCENES:-600}
 DAGGER_SCENES=${DAGGER_SCENES:-150}
 START_COMMIT=3da66a5
@@ -70,6 +77,30 @@ if [[ ! -d outputs/train_v2_lowlr/checkpoints ]]; then
       --num_workers=1 --save_freq="$SAVE_FREQ" --log_freq=100 --steps=1000 --output_dir=outputs/train_v2_lowlr
 fi
 
-ckpt=outputs/train_v2_lowlr/checkpoints/$CKPT_STEP/pretrained_model
+previous=outputs/train_v2_lowlr/checkpoints/000500/pretrained_model
+.venv/bin/rtv3 generate --num-scenes 300 --output data/train_v3_base --end-at pregrasp \
+    --grasps-per-scene 16 --num-points 512 --seed 1 --workers 2
+.venv/bin/rtv3 dagger --policy.path "$previous" --output data/dagger_prior --num-scenes "$DAGGER_SCENES" --seed 6 \
+    --drivers prior --targets-per-scene 4 --relabels-per-rollout 3 --workers 2
+[[ -f data/train_v3/meta/info.json ]] || \
+  .venv/bin/python scripts/merge_datasets.py data/train_v3_base data/dagger_prior --output data/train_v3
+
+resampled_fine_tune() {  # init output steps
+  .venv/bin/lerobot-train --policy.type=rtv3 --policy.init_weights_from="$1" \
+      --policy.point_stem_poolings=0 --policy.teacher_forcing=false --policy.rotation_conditioning=sampled \
+      --policy.twist_noise_linear=0.05 --policy.twist_noise_angular=0.25 --policy.optimizer_lr=0.0003 \
+      --policy.history_rotation_resample_prob=0.5 --policy.history_rotation_resample_mode=rate \
+      --dataset.repo_id=local/rtv3_grasp_clutter --dataset.root=data/train_v3 \
+      --policy.push_to_hub=false --policy.device=cpu --wandb.enable=false --batch_size="$BATCH" \
+      --num_workers=1 --save_freq=250 --log_freq=100 --steps="$3" --output_dir="$2"
+}
+[[ -d outputs/train_v3/checkpoints ]] || resampled_fine_tune "$previous" outputs/train_v3 1000
+[[ -d outputs/train_v3_long/checkpoints ]] || \
+  resampled_fine_tune outputs/train_v3/checkpoints/001000/pretrained_model outputs/train_v3_long 1500
+
+ckpt=outputs/train_v3_long/checkpoints/$CKPT_STEP/pretrained_model
+card=$(mktemp)
+cp rtv3_maniskill/checkpoints/rtv3_grasp_clutter/README.md "$card"  # the model card states the measured numbers
 rm -rf rtv3_maniskill/checkpoints/rtv3_grasp_clutter
 cp -r "$ckpt" rtv3_maniskill/checkpoints/rtv3_grasp_clutter
+cp "$card" rtv3_maniskill/checkpoints/rtv3_grasp_clutter/README.md
