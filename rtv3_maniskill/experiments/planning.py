@@ -93,19 +93,19 @@ def trace_step(step: int, tcp_pose: torch.Tensor, grasp_pose: torch.Tensor, twis
     how well the command points at that pre-grasp: the cosine of ``v`` and of ``w`` with the two
     halves of ``T_tcp^-1 T_pre`` (its translation and its rotation vector, TCP frame; +1 = straight
     at it, -1 = away)."""
-    pre = pregrasp_poses(grasp_pose.double())
-    target = min((pre, se3.rotate_about_z(pre, math.pi)),
-                 key=lambda t: float(se3.so3_log(se3.relative_transform(t, tcp_pose.double())[:3, :3]).norm()))
-    error = se3.relative_transform(target, tcp_pose.double())
-    to_target = se3.relative_transform(tcp_pose.double(), target)  # the pre-grasp in the TCP frame
+    from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
+
+    tcp = tcp_pose.double()
+    aimed = torch.from_numpy(canonicalize_symmetric(grasp_pose.double().numpy()[None], tcp.numpy())[0])
+    to_target = se3.relative_transform(tcp, pregrasp_poses(aimed))  # the pre-grasp in the TCP frame
     straight = torch.cat([to_target[:3, 3], se3.so3_log(to_target[:3, :3])])
     command = twist.double().reshape(6)
 
     def cosine(a: torch.Tensor, b: torch.Tensor) -> float:
         return float(torch.dot(a, b) / (a.norm() * b.norm()).clamp_min(1e-12))
 
-    return dict(step=step, distance=distance, translation_error=float(error[:3, 3].norm()),
-                rotation_error_deg=math.degrees(float(se3.so3_log(error[:3, :3]).norm())),
+    return dict(step=step, distance=distance, translation_error=float(straight[:3].norm()),
+                rotation_error_deg=math.degrees(float(straight[3:].norm())),
                 linear_speed=float(command[:3].norm()), angular_speed=float(command[3:].norm()),
                 linear_alignment=cosine(command[:3], straight[:3]), angular_alignment=cosine(command[3:], straight[3:]),
                 collision=float(collision))

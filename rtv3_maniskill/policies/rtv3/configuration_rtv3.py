@@ -26,7 +26,6 @@ GRASP_SUBSET_SIZES = ("uniform", "log_uniform")
 
 LATENT_TRAINING_MODES = ("enumerate", "sample")
 ROTATION_CONDITIONING_MODES = ("demonstrated", "sampled")
-
 ENV_STATE = "observation.environment_state"
 """LeRobot's packed environment-state key (``features.pack_context`` layout)."""
 
