@@ -56,26 +56,25 @@ fi
 [[ -f data/train_v2_dagger/meta/info.json ]] || \
   .venv/bin/python scripts/merge_datasets.py data/train_v2 data/dagger_direct --output data/train_v2_dagger
 
-if [[ ! -d outputs/train_v2/checkpoints ]]; then
-  .venv/bin/lerobot-train --policy.type=rtv3 --policy.init_weights_from=$init \
+# One fine-tune, skipped when OUTPUT already has checkpoints (resume an interrupted one with
+# lerobot-train --config_path=OUTPUT/checkpoints/last/pretrained_model/train_config.json --resume=true).
+fine_tune() {  # INIT DATASET OUTPUT STEPS SAVE_FREQ [extra lerobot-train flags]
+  local init=$1 dataset=$2 output=$3 steps=$4 save_freq=$5
+  shift 5
+  [[ -d $output/checkpoints ]] && return 0
+  .venv/bin/lerobot-train --policy.type=rtv3 --policy.init_weights_from="$init" \
       --policy.point_stem_poolings=0 --policy.teacher_forcing=false --policy.rotation_conditioning=sampled \
-      --policy.twist_noise_linear=0.05 --policy.twist_noise_angular=0.25 \
-      --dataset.repo_id=local/rtv3_grasp_clutter --dataset.root=data/train_v2_dagger \
+      --policy.twist_noise_linear=0.05 --policy.twist_noise_angular=0.25 "$@" \
+      --dataset.repo_id=local/rtv3_grasp_clutter --dataset.root="$dataset" \
       --policy.push_to_hub=false --policy.device=cpu --wandb.enable=false --batch_size="$BATCH" \
-      --num_workers=1 --save_freq="$SAVE_FREQ" --log_freq=100 --steps="$STEPS" --output_dir=outputs/train_v2
-fi
+      --num_workers=1 --save_freq="$save_freq" --log_freq=100 --steps="$steps" --output_dir="$output"
+}
 
+fine_tune "$init" data/train_v2_dagger outputs/train_v2 "$STEPS" "$SAVE_FREQ"
 # Stage 2: from checkpoint 500 of stage 1 (the best of 500 / 1,000 / 1,500 on validation), the same
 # data at learning rate 3e-4.
-if [[ ! -d outputs/train_v2_lowlr/checkpoints ]]; then
-  .venv/bin/lerobot-train --policy.type=rtv3 \
-      --policy.init_weights_from=outputs/train_v2/checkpoints/000500/pretrained_model \
-      --policy.point_stem_poolings=0 --policy.teacher_forcing=false --policy.rotation_conditioning=sampled \
-      --policy.twist_noise_linear=0.05 --policy.twist_noise_angular=0.25 --policy.optimizer_lr=0.0003 \
-      --dataset.repo_id=local/rtv3_grasp_clutter --dataset.root=data/train_v2_dagger \
-      --policy.push_to_hub=false --policy.device=cpu --wandb.enable=false --batch_size="$BATCH" \
-      --num_workers=1 --save_freq="$SAVE_FREQ" --log_freq=100 --steps=1000 --output_dir=outputs/train_v2_lowlr
-fi
+fine_tune outputs/train_v2/checkpoints/000500/pretrained_model data/train_v2_dagger outputs/train_v2_lowlr \
+    1000 "$SAVE_FREQ" --policy.optimizer_lr=0.0003
 
 previous=outputs/train_v2_lowlr/checkpoints/000500/pretrained_model
 .venv/bin/rtv3 generate --num-scenes 300 --output data/train_v3_base --end-at pregrasp \
@@ -85,18 +84,11 @@ previous=outputs/train_v2_lowlr/checkpoints/000500/pretrained_model
 [[ -f data/train_v3/meta/info.json ]] || \
   .venv/bin/python scripts/merge_datasets.py data/train_v3_base data/dagger_prior --output data/train_v3
 
-resampled_fine_tune() {  # init output steps
-  .venv/bin/lerobot-train --policy.type=rtv3 --policy.init_weights_from="$1" \
-      --policy.point_stem_poolings=0 --policy.teacher_forcing=false --policy.rotation_conditioning=sampled \
-      --policy.twist_noise_linear=0.05 --policy.twist_noise_angular=0.25 --policy.optimizer_lr=0.0003 \
-      --policy.history_rotation_resample_prob=0.5 --policy.history_rotation_resample_mode=rate \
-      --dataset.repo_id=local/rtv3_grasp_clutter --dataset.root=data/train_v3 \
-      --policy.push_to_hub=false --policy.device=cpu --wandb.enable=false --batch_size="$BATCH" \
-      --num_workers=1 --save_freq=250 --log_freq=100 --steps="$3" --output_dir="$2"
-}
-[[ -d outputs/train_v3/checkpoints ]] || resampled_fine_tune "$previous" outputs/train_v3 1000
-[[ -d outputs/train_v3_long/checkpoints ]] || \
-  resampled_fine_tune outputs/train_v3/checkpoints/001000/pretrained_model outputs/train_v3_long 1500
+resampled=(--policy.optimizer_lr=0.0003 --policy.history_rotation_resample_prob=0.5
+           --policy.history_rotation_resample_mode=rate)
+fine_tune "$previous" data/train_v3 outputs/train_v3 1000 250 "${resampled[@]}"
+fine_tune outputs/train_v3/checkpoints/001000/pretrained_model data/train_v3 outputs/train_v3_long 1500 250 \
+    "${resampled[@]}"
 
 ckpt=outputs/train_v3_long/checkpoints/$CKPT_STEP/pretrained_model
 card=$(mktemp)
