@@ -110,3 +110,30 @@ def test_lerobot_edit_dataset_cli_delete_episodes(generated, tmp_path):
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     _check_loads("local/fewer", root / "local" / "fewer", [episodes[1], *episodes[3:]])
+
+
+def test_merging_a_merged_dataset_keeps_every_episode(generated, tmp_path):
+    """A merge whose episode metadata spilled into a second file (LeRobot 0.4.4 labels both files 0)
+    merges again with every episode, in order, through ``rtv3_maniskill.datasets.merge``."""
+    import pyarrow.parquet as pq
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from rtv3_maniskill.datasets.merge import merge, repair_episode_file_labels
+
+    spilled = tmp_path / "spilled"
+    shutil.copytree(generated, spilled, ignore=shutil.ignore_patterns("rtv3_staging"))
+    meta_dir = spilled / "meta" / "episodes" / "chunk-000"
+    table = pq.read_table(meta_dir / "file-000.parquet")
+    half = table.num_rows // 2
+    pq.write_table(table.slice(0, half), meta_dir / "file-000.parquet")
+    pq.write_table(table.slice(half), meta_dir / "file-001.parquet")  # labelled file 0, as LeRobot leaves it
+    episodes = [e[:2] for e in _episodes(LeRobotDataset(REPO_ID, root=generated))]
+    _check_loads(REPO_ID, spilled, episodes)  # the spilled dataset itself still loads whole
+
+    merge([spilled, generated], tmp_path / "again")
+    assert repair_episode_file_labels(spilled) == 0  # merge mended its source first
+    _check_loads(REPO_ID, tmp_path / "again", episodes + episodes)
+    with pytest.raises(FileExistsError, match="exists"):
+        merge([generated], tmp_path / "again")
+    with pytest.raises(FileNotFoundError, match="no meta/info.json"):
+        merge([tmp_path / "nowhere"], tmp_path / "third")
