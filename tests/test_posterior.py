@@ -510,6 +510,25 @@ def test_user_command_gives_shared_control_that_blends_towards_the_matching_clas
     assert d.trans_entropy_lower[0] <= d.trans_entropy_upper[0]
 
 
+def test_prior_covariance_scale_gives_the_users_command_more_weight():
+    """A larger prior_covariance_scale moves the shared action from the prior's class mean towards
+    the user's command, by the Kalman gain of the scaled covariance; scale 1 is the plain fusion."""
+    user = torch.tensor([[0.2, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    actions = {}
+    for scale in (1.0, 10.0):
+        ctrl = SharedController(HandBuiltPrior(weights=(0.01, 0.99)), SharedControlConfig(
+            prior_covariance_scale=scale, adapt_user_covariance=False, max_linear_speed=None, belief_memory=0.0))
+        actions[scale] = ctrl.step(make_observation(), user)[0]
+        assert ctrl.last_diagnostics.mode == "shared"
+    # class 1: mean 0.3, variance 0.002 per axis; user variance 0.03
+    for scale, action in actions.items():
+        gain = 0.002 * scale / (0.002 * scale + 0.03)
+        assert action[0].item() == pytest.approx(0.3 + gain * (0.2 - 0.3), abs=2e-3)
+    assert actions[10.0][0] < actions[1.0][0]
+    with pytest.raises(ValueError, match="prior_covariance_scale"):
+        SharedControlConfig(prior_covariance_scale=0.0)
+
+
 def test_ood_gate_hands_control_to_user_for_three_steps_then_gives_it_back():
     prior = HandBuiltPrior()
     ctrl = SharedController(prior, SharedControlConfig.preset("paper", ood_steps=3, adapt_user_covariance=False))

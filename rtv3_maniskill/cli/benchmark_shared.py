@@ -66,6 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--uncommanded-axes", choices=["missing", "zero"], default=None,
                         help="zero axes of a user command: missing (default; the prior fills them in) or "
                              "observations of zero velocity (the paper's reading)")
+    parser.add_argument("--prior-covariance-scale", type=float, default=None,
+                        help="factor on the prior's step-0 covariances before the gate and the fusion (default 1); "
+                             "larger gives the user's command more weight against an overconfident prior")
     parser.add_argument("--safety-filter", choices=["neoss"], default=None,
                         help="put the NEO collision damper in front of every method (the paper's 'w. NeoSS' rows; "
                              "results are named METHOD+neoss)")
@@ -103,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
             obs_mode=args.obs_mode, rendered_context=not args.mesh_context, scene_type=args.scene_type,
             object_source=getattr(args, "objects", "procedural"),
             ho_variant=args.ho_variant, fusion=args.fusion, shared_control={
-                key: value for key in ("ood_alpha", "ood_covariance", "ood_dofs", "uncommanded_axes")
+                key: value for key in ("ood_alpha", "ood_covariance", "ood_dofs", "uncommanded_axes",
+                                                  "prior_covariance_scale")
                 if (value := getattr(args, key, None)) is not None
             },
         )

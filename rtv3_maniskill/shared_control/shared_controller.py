@@ -103,6 +103,12 @@ class SharedControlConfig:
     under each class is accumulated over the shared steps, decayed by this factor per step, and
     added to the prior's log-weights, so consistent commands build up a belief in one class (1 =
     exact Bayes for a goal that does not change)."""
+    prior_covariance_scale: float = 1.0
+    """Factor on the prior's step-0 covariances (Sigma_z and Gamma_z) before the gate and the
+    fusion. 1 (the paper) takes the prior as calibrated; a learned prior is calibrated on its
+    training data (docs/RESULTS.md, "step-0 calibration") but overconfident where its own closed
+    loop leads it, and a larger factor gives the user's command more weight (Kalman gain
+    ``K = s Sigma_z (s Sigma_z + S_u)^-1``)."""
     mode_search_starts: int = 3
     mode_search_iters: int = 10
     """Most mean-shift iterations of the mode search (:func:`posterior.mixture_mode`)."""
@@ -142,6 +148,8 @@ class SharedControlConfig:
         posterior.ood_threshold(self.ood_alpha)  # validates alpha
         if not 0.0 <= self.belief_memory <= 1.0:
             raise ValueError(f"belief_memory must be in [0, 1], got {self.belief_memory}")
+        if not (math.isfinite(self.prior_covariance_scale) and self.prior_covariance_scale > 0):
+            raise ValueError(f"prior_covariance_scale must be a finite number > 0, got {self.prior_covariance_scale}")
 
 
 FUSION_PRESETS: dict[str, dict[str, Any]] = {
@@ -244,6 +252,20 @@ def most_likely_twist(prior: posterior.FactorizedTwistMixture) -> torch.Tensor:
     translation means, so no second pass through the network is needed."""
     best = prior.log_weights.argmax(-1)
     return prior.means[torch.arange(best.shape[0], device=best.device), best]
+
+
+def scale_covariances(mixture: TwistMixture, scale: float) -> TwistMixture:
+    """``mixture`` with every class covariance (translation ``Sigma_z``, rotation ``Gamma_z``) times
+    ``scale``; the means and weights are kept (the same mixture when ``scale`` is 1)."""
+    if scale == 1.0:
+        return mixture
+    rotation = mixture.rotation_given_translation
+
+    def scaled_rotation(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        omega, gamma = rotation(v)
+        return omega, gamma * scale
+
+    return dataclasses.replace(mixture, trans_cov=mixture.trans_cov * scale, rotation_given_translation=scaled_rotation)
 
 
 class SharedController:
@@ -368,7 +390,7 @@ class SharedController:
             mixture = self.policy.predict_step0_mixture(observation)
             if mixture.log_weights.shape[0] != b:
                 raise ValueError(f"policy returned a mixture of batch {mixture.log_weights.shape[0]}, expected {b}")
-            mixture = self._with_belief(mixture)
+            mixture = self._with_belief(scale_covariances(mixture, c.prior_covariance_scale))
             fused = None
             fired = torch.zeros(b, dtype=torch.bool)
             if (active & ~no_grasps).any():
