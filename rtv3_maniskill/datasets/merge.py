@@ -59,7 +59,7 @@ def merge(sources: list[Path], output: Path):
     if Path(output).exists():
         raise FileExistsError(f"{output} exists; remove it or choose another folder")
     from lerobot.datasets.dataset_tools import merge_datasets
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     for source in sources:
         repair_episode_file_labels(source)
@@ -69,7 +69,7 @@ def merge(sources: list[Path], output: Path):
         repair_episode_file_labels(output)
         merged = LeRobotDataset(REPO_ID, root=output)
         expected = sum(d.meta.total_episodes for d in datasets)
-        listed = len(LeRobotDatasetMetadata(REPO_ID, root=output).episodes)
+        listed = len(merged.meta.episodes)  # the rows of every episode-metadata file
         if listed != expected or merged.meta.total_frames != sum(d.meta.total_frames for d in datasets):
             raise RuntimeError(f"merge lost data: {listed} episodes listed, {expected} expected")
     except BaseException:
