@@ -60,7 +60,7 @@ def _drive(memory: float, steps: int = 40) -> torch.Tensor:
     """A user who aims at goal 1 with noisy but consistent commands; returns the class weights."""
     ctrl = SharedController(OraclePrior(GOALS), SharedControlConfig(
         belief_memory=memory, ood_covariance="predictive", ood_alpha=0.99, adapt_user_covariance=False,
-        max_linear_speed=0.3, max_angular_speed=1.2))
+        max_linear_speed=0.3, max_angular_speed=1.2, prior_covariance_scale=1.0))  # the oracle's own covariances
     ctrl.reset()
     rng = np.random.default_rng(0)
     pose = START.clone()

@@ -495,7 +495,8 @@ def test_no_input_near_the_object_surface_hands_control_to_the_user():
 
 def test_user_command_gives_shared_control_that_blends_towards_the_matching_class():
     prior = HandBuiltPrior(weights=(0.7, 0.3))
-    ctrl = SharedController(prior)
+    # the hand-built prior's covariances are taken as they are (the paper's reading)
+    ctrl = SharedController(prior, SharedControlConfig(prior_covariance_scale=1.0))
     user = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.0]])
     action = ctrl.step(make_observation(), user)[0]
     d = ctrl.last_diagnostics
@@ -527,6 +528,26 @@ def test_prior_covariance_scale_gives_the_users_command_more_weight():
     assert actions[10.0][0] < actions[1.0][0]
     with pytest.raises(ValueError, match="prior_covariance_scale"):
         SharedControlConfig(prior_covariance_scale=0.0)
+
+
+def test_missing_far_leaves_uncommanded_axes_to_the_prior_only_away_from_the_scene():
+    """``uncommanded_axes="missing_far"``: a one-axis command's other axes are missing (the prior
+    fills them) farther than the autonomy cutoff from the scene, and "hold still" within it."""
+    user = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    far = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.0),))
+    near = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.25),))
+
+    def act(axes: str, obs: dict) -> torch.Tensor:
+        ctrl = SharedController(HandBuiltPrior(weights=(0.7, 0.3)), SharedControlConfig(
+            uncommanded_axes=axes, prior_covariance_scale=100.0, adapt_user_covariance=False))
+        action = ctrl.step(obs, user)[0]
+        assert ctrl.last_diagnostics.mode == "shared"
+        return action
+
+    torch.testing.assert_close(act("missing_far", far), act("missing", far))
+    torch.testing.assert_close(act("missing_far", near), act("zero", near))
+    # the rotation the user does not command: filled in far away, held back near the scene
+    assert act("missing_far", far)[5] > 2 * act("missing_far", near)[5].abs()
 
 
 def test_ood_gate_hands_control_to_user_for_three_steps_then_gives_it_back():
@@ -636,5 +657,6 @@ def test_fusion_presets_tuned_is_the_default_and_paper_is_the_papers_reading():
     assert SharedControlConfig() == SharedControlConfig.preset("tuned")
     paper = SharedControlConfig.preset("paper", ood_steps=2)
     assert (paper.ood_covariance, paper.ood_alpha, paper.belief_memory, paper.ood_steps) == ("class", 0.85, 0.0, 2)
+    assert paper.prior_covariance_scale == 1.0 and SharedControlConfig().prior_covariance_scale == 100.0
     with pytest.raises(ValueError, match="unknown fusion preset"):
         SharedControlConfig.preset("bold")

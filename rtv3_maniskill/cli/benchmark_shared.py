@@ -53,7 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "authors' public code (rotation assistance x0.125, linear branch x0.6) or the original")
     parser.add_argument("--fusion", choices=["tuned", "paper"], default="tuned",
                         help="RT-V3 fusion preset: tuned (default, chosen on validation scenes: predictive gate at "
-                             "alpha 0.99, recursive goal belief) or paper (class-covariance gate at 0.85, no memory); "
+                             "alpha 0.99, recursive goal belief, prior covariance x100, a command's zero axes missing "
+                             "away from the scene) or paper (class-covariance gate at 0.85, no memory, x1); "
                              "the options below override single settings")
     parser.add_argument("--ood-alpha", type=float, default=None,
                         help="RT-V3 OOD gate chi-square quantile (tuned 0.99, paper 0.85); "
@@ -63,12 +64,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ood-dofs", choices=["twist", "translation"], default=None,
                         help="RT-V3 OOD gate on the whole twist (default) or on the translation only "
                              "(docs/PAPER_DETAILS.md)")
-    parser.add_argument("--uncommanded-axes", choices=["missing", "zero"], default=None,
-                        help="zero axes of a user command: missing (default; the prior fills them in) or "
-                             "observations of zero velocity (the paper's reading)")
+    parser.add_argument("--uncommanded-axes", choices=["missing", "zero", "missing_far"], default=None,
+                        help="zero axes of a user command: missing (the prior fills them in), observations of "
+                             "zero velocity (zero, the paper's reading), or missing only farther than the autonomy "
+                             "cutoff from the scene and zero nearer (missing_far, tuned)")
     parser.add_argument("--prior-covariance-scale", type=float, default=None,
-                        help="factor on the prior's step-0 covariances before the gate and the fusion (default 1); "
-                             "larger gives the user's command more weight against an overconfident prior")
+                        help="factor on the prior's step-0 covariances before the gate and the fusion (tuned 100, "
+                             "paper 1); larger gives the user's command more weight against an overconfident prior")
     parser.add_argument("--safety-filter", choices=["neoss"], default=None,
                         help="put the NEO collision damper in front of every method (the paper's 'w. NeoSS' rows; "
                              "results are named METHOD+neoss)")

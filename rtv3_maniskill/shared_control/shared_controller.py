@@ -6,8 +6,9 @@ Per step and batch element, one of three modes (``SharedControlDiagnostics.modes
   prior's step-0 mixture (:func:`posterior.prior_and_fused_mixtures`, which also gives the prior
   mixture, :func:`posterior.fuse_user_command` alone) and execute the mode of
   the fused mixture (:func:`posterior.mixture_mode`). The zero axes of a command are, by
-  default (``uncommanded_axes="missing"``), axes the device does not give: they are not
-  fused, so the prior fills them in (a mode-switching or single-axis user).
+  default (``uncommanded_axes="missing_far"``), axes the device does not give while the EE is
+  farther than ``autonomy_cutoff_distance`` from the scene: they are not fused, so the prior
+  fills them in (a mode-switching or single-axis user); nearer, they mean "hold still".
 * ``"autonomous"``: no user command (``None`` or all zeros), asynchronous mode on, and
   the EE is farther than ``autonomy_cutoff_distance`` from every scene point -> execute
   the prior's most likely action (argmax class, then its Gaussians' means; :func:`most_likely_twist`).
@@ -43,7 +44,7 @@ from rtv3_maniskill.twist_mixture import TwistMixture
 MODES = ("shared", "autonomous", "user_only")
 EVIDENCE_FLOOR = 20.0
 """Nats: the recursive belief never rules a class out by more than this (``belief_memory``)."""
-UNCOMMANDED_AXES = ("missing", "zero")
+UNCOMMANDED_AXES = ("missing", "zero", "missing_far")
 
 
 class StepZeroPrior(Protocol):
@@ -82,11 +83,13 @@ class SharedControlConfig:
     ood_dofs: str = "twist"
     """What the OOD test looks at: ``"twist"`` (translation and rotation) or ``"translation"``
     (docs/PAPER_DETAILS.md); see :func:`posterior.is_out_of_distribution`."""
-    uncommanded_axes: str = "missing"
+    uncommanded_axes: str = "missing_far"
     """How a zero axis of a user command (``|u_i| <= input_threshold``) of a command that is not
     zero altogether is read: ``"missing"``, an axis the device does not give (a mode-switching
     or single-axis user), so neither the fusion nor the OOD test uses it and the prior fills it
-    in; ``"zero"`` (the paper's and docs/PAPER_DETAILS.md's reading), an observation "hold still" on that axis."""
+    in; ``"zero"`` (the paper's and docs/PAPER_DETAILS.md's reading), an observation "hold still" on that axis;
+    ``"missing_far"``, missing farther than ``autonomy_cutoff_distance`` from the scene and "hold still"
+    within it, where filling an axis the user does not drive is autonomy near clutter."""
     user_trans_var: float = 0.03
     """Initial S_u diagonal ((m/s)^2)."""
     user_rot_var: float = 0.1
@@ -103,12 +106,13 @@ class SharedControlConfig:
     under each class is accumulated over the shared steps, decayed by this factor per step, and
     added to the prior's log-weights, so consistent commands build up a belief in one class (1 =
     exact Bayes for a goal that does not change)."""
-    prior_covariance_scale: float = 1.0
+    prior_covariance_scale: float = 100.0
     """Factor on the prior's step-0 covariances (Sigma_z and Gamma_z) before the gate and the
     fusion. 1 (the paper) takes the prior as calibrated; a learned prior is calibrated on its
     training data (docs/RESULTS.md, "step-0 calibration") but overconfident where its own closed
-    loop leads it, and a larger factor gives the user's command more weight (Kalman gain
-    ``K = s Sigma_z (s Sigma_z + S_u)^-1``)."""
+    loop leads it (on DAgger states its maximum-likelihood scale is ~20:
+    ``scripts/calibrate_prior_covariance.py``), and a larger factor gives the user's command more
+    weight (Kalman gain ``K = s Sigma_z (s Sigma_z + S_u)^-1``). 100 was chosen on validation goals."""
     mode_search_starts: int = 3
     mode_search_iters: int = 10
     """Most mean-shift iterations of the mode search (:func:`posterior.mixture_mode`)."""
@@ -120,9 +124,10 @@ class SharedControlConfig:
         """A named fusion (:data:`FUSION_PRESETS`), with ``overrides`` on top.
 
         ``"tuned"`` (the defaults) was chosen on validation scenes so that a prior that knows the
-        scene helps every simulated user (docs/RESULTS.md, "Fusion settings"); ``"paper"`` is the
-        paper's reading: the gate under the class covariance at alpha 0.85, no memory of earlier
-        commands.
+        scene helps every simulated user and the shipped prior loses to Direct for none
+        (docs/RESULTS.md, "Fusion settings"); ``"paper"`` is the paper's reading: the gate under the
+        class covariance at alpha 0.85, no memory of earlier commands, the prior's covariances as
+        predicted (and a command's zero axes missing everywhere, as before ``"missing_far"``).
         """
         if name not in FUSION_PRESETS:
             raise ValueError(f"unknown fusion preset {name!r}; known: {', '.join(FUSION_PRESETS)}")
@@ -153,8 +158,10 @@ class SharedControlConfig:
 
 
 FUSION_PRESETS: dict[str, dict[str, Any]] = {
-    "tuned": dict(ood_covariance="predictive", ood_alpha=0.99, belief_memory=1.0),
-    "paper": dict(ood_covariance="class", ood_alpha=0.85, belief_memory=0.0),
+    "tuned": dict(ood_covariance="predictive", ood_alpha=0.99, belief_memory=1.0, prior_covariance_scale=100.0,
+                  uncommanded_axes="missing_far"),
+    "paper": dict(ood_covariance="class", ood_alpha=0.85, belief_memory=0.0, prior_covariance_scale=1.0,
+                  uncommanded_axes="missing"),
 }
 """Named fusion settings (:meth:`SharedControlConfig.preset`); ``"tuned"`` is the default."""
 
@@ -394,7 +401,11 @@ class SharedController:
             fused = None
             fired = torch.zeros(b, dtype=torch.bool)
             if (active & ~no_grasps).any():
-                observed = (user.abs() > c.input_threshold) if c.uncommanded_axes == "missing" else None
+                observed = None
+                if c.uncommanded_axes != "zero":
+                    observed = user.abs() > c.input_threshold
+                    if c.uncommanded_axes == "missing_far":
+                        observed = observed | (dist <= c.autonomy_cutoff_distance)[:, None]
                 prior, fused = posterior.prior_and_fused_mixtures(
                     mixture, user, s_u, g_u, c.reweight_rotation_at, observed=observed)
                 fired = (active & posterior.is_out_of_distribution(fused, c.ood_alpha, c.ood_covariance, c.ood_dofs)
