@@ -532,22 +532,28 @@ def test_prior_covariance_scale_gives_the_users_command_more_weight():
 
 def test_missing_far_leaves_uncommanded_axes_to_the_prior_only_away_from_the_scene():
     """``uncommanded_axes="missing_far"``: a one-axis command's other axes are missing (the prior
-    fills them) farther than the autonomy cutoff from the scene, and "hold still" within it."""
+    fills them) farther than the autonomy cutoff from the scene; within it an axis the user has
+    commanded before means "hold still", and one the device never gave stays missing."""
     user = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    turn = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.54]])  # class 1's own twist: in distribution
     far = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.0),))
     near = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.25),))
 
-    def act(axes: str, obs: dict) -> torch.Tensor:
+    def act(axes: str, obs: dict, earlier: tuple[torch.Tensor, ...] = ()) -> torch.Tensor:
         ctrl = SharedController(HandBuiltPrior(weights=(0.7, 0.3)), SharedControlConfig(
-            uncommanded_axes=axes, prior_covariance_scale=100.0, adapt_user_covariance=False))
+            uncommanded_axes=axes, adapt_user_covariance=False, belief_memory=0.0))
+        for command in earlier:
+            ctrl.step(obs, command)
         action = ctrl.step(obs, user)[0]
         assert ctrl.last_diagnostics.mode == "shared"
         return action
 
-    torch.testing.assert_close(act("missing_far", far), act("missing", far))
-    torch.testing.assert_close(act("missing_far", near), act("zero", near))
-    # the rotation the user does not command: filled in far away, held back near the scene
-    assert act("missing_far", far)[5] > 2 * act("missing_far", near)[5].abs()
+    torch.testing.assert_close(act("missing_far", far, (turn,)), act("missing", far))
+    torch.testing.assert_close(act("missing_far", near), act("missing", near))  # rotation not on the device
+    held = act("missing_far", near, (turn,))
+    torch.testing.assert_close(held, act("zero", near))
+    # the rotation the user does not command now: filled in far away, held back near the scene
+    assert act("missing_far", far, (turn,))[5] > 2 * held[5].abs()
 
 
 def test_ood_gate_hands_control_to_user_for_three_steps_then_gives_it_back():

@@ -185,7 +185,7 @@ def plot_demo(path: Path, rtv3, direct, title: str, success_threshold: float, to
             continue
         d = [x["pregrasp_distance"] for x in result.diagnostics]
         ax.plot((np.arange(len(d)) + 1) * DT, d, color=color,
-                label=f"{name} ({'success' if result.success else 'failure'})")
+                label=f"{name} ({result.outcome})")
     ax.axhline(success_threshold, color="k", lw=0.8, ls=":", label="success threshold")
     ax.set_ylabel("distance to pre-grasp")
     ax.set_xlabel("time (s)")

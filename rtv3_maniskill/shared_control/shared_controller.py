@@ -8,7 +8,8 @@ Per step and batch element, one of three modes (``SharedControlDiagnostics.modes
   the fused mixture (:func:`posterior.mixture_mode`). The zero axes of a command are, by
   default (``uncommanded_axes="missing_far"``), axes the device does not give while the EE is
   farther than ``autonomy_cutoff_distance`` from the scene: they are not fused, so the prior
-  fills them in (a mode-switching or single-axis user); nearer, they mean "hold still".
+  fills them in (a mode-switching or single-axis user); nearer, an axis the user has commanded
+  before means "hold still".
 * ``"autonomous"``: no user command (``None`` or all zeros), asynchronous mode on, and
   the EE is farther than ``autonomy_cutoff_distance`` from every scene point -> execute
   the prior's most likely action (argmax class, then its Gaussians' means; :func:`most_likely_twist`).
@@ -88,8 +89,10 @@ class SharedControlConfig:
     zero altogether is read: ``"missing"``, an axis the device does not give (a mode-switching
     or single-axis user), so neither the fusion nor the OOD test uses it and the prior fills it
     in; ``"zero"`` (the paper's and docs/PAPER_DETAILS.md's reading), an observation "hold still" on that axis;
-    ``"missing_far"``, missing farther than ``autonomy_cutoff_distance`` from the scene and "hold still"
-    within it, where filling an axis the user does not drive is autonomy near clutter."""
+    ``"missing_far"``, "hold still" within ``autonomy_cutoff_distance`` of the scene if the user has
+    commanded that axis since ``reset()`` (it is on the device: there, filling it is autonomy near
+    clutter), missing otherwise (farther away, or an axis the device never gave, e.g. a
+    translation-only device's rotation)."""
     user_trans_var: float = 0.03
     """Initial S_u diagonal ((m/s)^2)."""
     user_rot_var: float = 0.1
@@ -296,6 +299,8 @@ class SharedController:
         self.config = config or SharedControlConfig()
         self._batch_size: int | None = None
         self._ood_remaining = torch.zeros(0, dtype=torch.long)
+        self._commanded_axes = torch.zeros(0, 6, dtype=torch.bool)
+        """``(B, 6)`` axes the user has commanded since ``reset()`` (the device's axes; ``missing_far``)."""
         self._user_cov: posterior.UserCovarianceEstimator | None = None
         self._evidence: torch.Tensor | None = None
         """``(B, K)`` accumulated log-likelihood of the user's commands per class (``belief_memory``)."""
@@ -306,6 +311,7 @@ class SharedController:
         self.policy.reset()
         self._batch_size = None
         self._ood_remaining = torch.zeros(0, dtype=torch.long)
+        self._commanded_axes = torch.zeros(0, 6, dtype=torch.bool)
         self._user_cov = None
         self._evidence = None
         self.last_diagnostics = None
@@ -338,6 +344,7 @@ class SharedController:
             c = self.config
             self._batch_size = b
             self._ood_remaining = torch.zeros(b, dtype=torch.long)
+            self._commanded_axes = torch.zeros(b, 6, dtype=torch.bool)
             self._user_cov = posterior.UserCovarianceEstimator(
                 batch_size=b,
                 init_trans_var=c.user_trans_var,
@@ -404,8 +411,8 @@ class SharedController:
                 observed = None
                 if c.uncommanded_axes != "zero":
                     observed = user.abs() > c.input_threshold
-                    if c.uncommanded_axes == "missing_far":
-                        observed = observed | (dist <= c.autonomy_cutoff_distance)[:, None]
+                    if c.uncommanded_axes == "missing_far":  # near the scene, a device axis at zero holds still
+                        observed = observed | (self._commanded_axes & (dist <= c.autonomy_cutoff_distance)[:, None])
                 prior, fused = posterior.prior_and_fused_mixtures(
                     mixture, user, s_u, g_u, c.reweight_rotation_at, observed=observed)
                 fired = (active & posterior.is_out_of_distribution(fused, c.ood_alpha, c.ood_covariance, c.ood_dofs)
@@ -444,6 +451,7 @@ class SharedController:
             weights = shown.weights
             self._remember(shared, prior, fused)
         self._user_cov.update(user, active)
+        self._commanded_axes = self._commanded_axes | (user.abs() > c.input_threshold)
 
         action = clamp_twist_speed(action, c.max_linear_speed, c.max_angular_speed)
         if not torch.isfinite(action).all():  # defensive: never send NaN to a robot
