@@ -7,7 +7,8 @@ oracle's SR, its gain over Direct and the paired wins / losses with the exact Mc
 
     python scripts/sweep_fusion.py --scenes 10 --goals-per-scene 3 --output outputs/sweep_fusion
 
-Settings are named ``key=value,key=value`` of ``SharedControlConfig`` fields; ``--setting`` repeats.
+Settings are named ``key=value,key=value`` of ``SharedControlConfig`` fields on top of the
+``paper`` preset; ``--setting`` repeats. The last default setting is the ``tuned`` preset.
 """
 
 from __future__ import annotations
@@ -22,6 +23,9 @@ DEFAULT_SETTINGS = (
     "predictive_a99:ood_covariance=predictive,ood_alpha=0.99",
     "predictive_a99_belief:ood_covariance=predictive,ood_alpha=0.99,belief_memory=1.0",
     "class_belief:belief_memory=1.0",
+    "predictive_a99_belief_x100:ood_covariance=predictive,ood_alpha=0.99,belief_memory=1.0,prior_covariance_scale=100",
+    "tuned:ood_covariance=predictive,ood_alpha=0.99,belief_memory=1.0,prior_covariance_scale=100,"
+    "uncommanded_axes=missing_far",
 )
 USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
 
@@ -65,7 +69,8 @@ def main() -> int:
              "|---|---|---:|---:|---:|---:|---:|---:|"]
     for name, values in map(_parse_setting, args.setting or DEFAULT_SETTINGS):
         folder = args.output / name
-        run_benchmark(BenchmarkConfig(output=folder, methods=["oracle"], shared_control=values, **common))
+        run_benchmark(BenchmarkConfig(output=folder, methods=["oracle"], fusion="paper", shared_control=values,
+                                      **common))
         oracle = read_results(folder / "results.csv")
         paired = paired_with_baseline(direct + oracle)
         for user in users:
