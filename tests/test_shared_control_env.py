@@ -228,6 +228,15 @@ def test_methods_are_paired_with_direct_and_tested_by_exact_mcnemar():
     assert "| noisy | Oracle | 10 | 80.0 |" in summary_markdown([direct, oracle])
     assert "8 / 2 | 0.109 |" in summary_markdown([direct, oracle])
 
+    # Behind a safety filter the baseline is Direct behind the same filter: here Direct w. NeoSS
+    # succeeds wherever the oracle w. NeoSS does, so the filter's gain is not the oracle's.
+    filtered = [dict(row, method=row["method"] + "+neoss", outcome="success") for row in rows]
+    by_method = {s["method"]: s for s in summarize(rows + filtered)}
+    assert by_method["direct+neoss"]["wins"] is None
+    assert (by_method["oracle+neoss"]["paired_trials"], by_method["oracle+neoss"]["wins"],
+            by_method["oracle+neoss"]["losses"]) == (10, 0, 0)
+    assert (by_method["oracle"]["wins"], by_method["oracle"]["losses"]) == (8, 2)
+
 
 def _rows(path):
     with open(path, newline="") as f:

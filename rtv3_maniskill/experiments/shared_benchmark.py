@@ -282,15 +282,18 @@ def paired_with_baseline(rows: Iterable[dict[str, Any]],
                          baseline: str = "direct") -> dict[tuple[str, str], dict[str, Any]]:
     """Per (user, method) other than ``baseline``: the trials both ran (same scene, goal and user
     noise), ``wins`` (success where the baseline failed), ``losses`` (the reverse) and the exact
-    McNemar p-value."""
+    McNemar p-value. A method behind a safety filter (``"rtv3+neoss"``) is paired with the baseline
+    behind the same filter (``"direct+neoss"``), so the filter's own effect is not counted as help."""
     outcome: dict[tuple[str, str], dict[tuple[int, int], bool]] = {}
     for row in rows:
         key = (int(row["scene_seed"]), int(row["grasp_index"]))
         outcome.setdefault((row["user"], row["method"]), {})[key] = row["outcome"] == "success"
     out = {}
     for (user, method), trials in outcome.items():
-        base = outcome.get((user, baseline))
-        if method == baseline or base is None:
+        _, plus, safety_filter = method.partition("+")
+        paired_baseline = baseline + plus + safety_filter
+        base = outcome.get((user, paired_baseline))
+        if method == paired_baseline or base is None:
             continue
         common = trials.keys() & base.keys()
         wins = sum(1 for k in common if trials[k] and not base[k])
@@ -304,7 +307,8 @@ def summarize(rows: Iterable[dict[str, Any]], users: Sequence[str] | None = None
               methods: Sequence[str] | None = None) -> list[dict[str, Any]]:
     """Per (user, method): trials, SR / CR / TOR % (exclusive outcomes, they add up to 100), reached %
     (pre-grasp reached, contact or not), mean iterations of the successful trials (NaN if none), and
-    the paired comparison with Direct (:func:`paired_with_baseline`; None for Direct itself).
+    the paired comparison with Direct behind the same safety filter (:func:`paired_with_baseline`;
+    None for Direct itself).
     Every row counts; ``users`` / ``methods`` only set the order (names not listed follow, sorted)."""
     rows = list(rows)
     paired = paired_with_baseline(rows)
@@ -379,8 +383,8 @@ def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | 
         "\nOne outcome per trial: CR = a robot contact came first (the trial fails), SR = the target "
         "pre-grasp was reached first (pose distance < 0.1), TOR = neither within the step limit; reached: "
         "the pre-grasp was reached with or without a contact; Iter: mean control steps (20 Hz) of the "
-        "successful trials. W / L: trials this method succeeded where Direct failed / the reverse, on the "
-        "same goals and user noise; McNemar p: exact two-sided test of W against L. Paper SR: Table II "
+        "successful trials. W / L: trials this method succeeded where Direct (behind the same safety "
+        "filter) failed / the reverse, on the same goals and user noise; McNemar p: exact two-sided test of W against L. Paper SR: Table II "
         "(their simulation; their Direct took 81 / 58 / 118 / 129 iterations for noisy / laggy / "
         "mode-switching / single-DoF).\n"
     )
