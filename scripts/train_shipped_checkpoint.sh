@@ -24,8 +24,14 @@
 #      again as data/train_v3_base) merged in, two fine-tunes at 3e-4 with history rotation
 #      resampling (p 0.5, "rate": the past turn replaced by a random one, so the prior reads its
 #      turn from the goal instead of continuing its own): 1,000 steps, then 1,000 more from the
-#      last checkpoint (CKPT_STEP: step 1000 of the second, picked among six on validation);
-#   8. the chosen checkpoint is copied into the package.
+#      last checkpoint (step 1000 of the second, picked among six on validation);
+#   8. that prior (step 1000 of the second fine-tune of step 7, the previous shipped prior) rolls out
+#      in a further DAgger round (scenes 300000..300099: the prior alone twice, and the single-DoF and
+#      mode-switching users through RT-V3 with the tuned fusion), merged with 400 scenes of fresh
+#      demonstrations (scenes 300000..300399); one fine-tune at 3e-4 with history rotation resampling,
+#      2,000 steps, checkpoints every 500 (CKPT_STEP: step 2000, picked among four on 120 validation
+#      planning trials, scenes 800000..800059);
+#   9. the chosen checkpoint is copied into the package.
 # Every step is resumable or skipped when its output exists. Environment: STEPS, BATCH, SAVE_FREQ,
 # CKPT_STEP, GEN_SCENES, DAGGER_SCENES trade time for quality.
 set -euo pipefail
@@ -33,7 +39,7 @@ cd "$(dirname "$0")/.."
 STEPS=${STEPS:-1500}
 BATCH=${BATCH:-64}
 SAVE_FREQ=${SAVE_FREQ:-500}
-CKPT_STEP=${CKPT_STEP:-001000}
+CKPT_STEP=${CKPT_STEP:-002000}
 GEN_SCENES=${GEN_SCENES:-600}
 DAGGER_SCENES=${DAGGER_SCENES:-150}
 START_COMMIT=3da66a5
@@ -90,7 +96,17 @@ fine_tune "$previous" data/train_v3 outputs/train_v3 1000 250 "${resampled[@]}"
 fine_tune outputs/train_v3/checkpoints/001000/pretrained_model data/train_v3 outputs/train_v3_long 1500 250 \
     "${resampled[@]}"
 
-ckpt=outputs/train_v3_long/checkpoints/$CKPT_STEP/pretrained_model
+previous=outputs/train_v3_long/checkpoints/001000/pretrained_model
+.venv/bin/rtv3 generate --num-scenes 400 --output data/train_s3 --end-at pregrasp \
+    --grasps-per-scene 16 --num-points 512 --seed 3 --workers 2
+.venv/bin/rtv3 dagger --policy.path "$previous" --output data/dagger_s3 --num-scenes 100 --seed 3 \
+    --drivers prior,rtv3:single_dof,rtv3:mode_switching,prior --targets-per-scene 4 --relabels-per-rollout 3 \
+    --workers 2
+[[ -f data/train_s3_dagger/meta/info.json ]] || \
+  .venv/bin/python scripts/merge_datasets.py data/train_s3 data/dagger_s3 --output data/train_s3_dagger
+fine_tune "$previous" data/train_s3_dagger outputs/train_s3 2000 500 "${resampled[@]}"
+
+ckpt=outputs/train_s3/checkpoints/$CKPT_STEP/pretrained_model
 card=$(mktemp)
 cp rtv3_maniskill/checkpoints/rtv3_grasp_clutter/README.md "$card"  # the model card states the measured numbers
 rm -rf rtv3_maniskill/checkpoints/rtv3_grasp_clutter
