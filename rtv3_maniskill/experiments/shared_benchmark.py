@@ -384,7 +384,8 @@ def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | 
         "pre-grasp was reached first (pose distance < 0.1), TOR = neither within the step limit; reached: "
         "the pre-grasp was reached with or without a contact; Iter: mean control steps (20 Hz) of the "
         "successful trials. W / L: trials this method succeeded where Direct (behind the same safety "
-        "filter) failed / the reverse, on the same goals and user noise; McNemar p: exact two-sided test of W against L. Paper SR: Table II "
+        "filter) failed / the reverse, on the same goals and user noise; McNemar p: exact two-sided test "
+        "of W against L. Paper SR: Table II "
         "(their simulation; their Direct took 81 / 58 / 118 / 129 iterations for noisy / laggy / "
         "mode-switching / single-DoF).\n"
     )
