@@ -64,18 +64,19 @@ def load_windows(root: Path, relabelled_only: bool, max_windows: int, seed: int)
     return batch, se3.body_twist(poses[0], poses[1], features.DT)[:, :3]
 
 
-def scale_table(maha_sq: torch.Tensor, log_det: torch.Tensor, log_weights: torch.Tensor,
+def scale_table(log_n: torch.Tensor, maha_sq: torch.Tensor, log_weights: torch.Tensor,
                 scales: tuple[float, ...], alpha: float = 0.85) -> list[dict[str, float]]:
     """Per scale ``s``: mean mixture NLL of the targets and coverage of the nearest class when every
-    class covariance is ``s`` times the prior's. ``maha_sq``, ``log_det``, ``log_weights``: ``(B, K)``
-    under the unscaled covariances (3-D translation Gaussians)."""
+    class covariance is ``s`` times the prior's. ``log_n`` (class log-densities), ``maha_sq`` and
+    ``log_weights``: ``(B, K)`` under the unscaled covariances (3-D translation Gaussians); scaling a
+    covariance by ``s`` divides the Mahalanobis distance by ``s`` and adds ``3/2 log s`` to the NLL."""
     from scipy.stats import chi2
 
     threshold = chi2.ppf(alpha, 3)
     out = []
     for s in scales:
-        log_n = -0.5 * (maha_sq / s + log_det + 3 * math.log(s) + 3 * math.log(2 * math.pi))
-        nll = -torch.logsumexp(log_weights + log_n, -1)
+        log_n_s = log_n + 0.5 * maha_sq * (1.0 - 1.0 / s) - 1.5 * math.log(s)
+        nll = -torch.logsumexp(log_weights + log_n_s, -1)
         covered = (maha_sq.min(-1).values / s) <= threshold
         out.append(dict(scale=s, nll=float(nll.mean()), covered=float(covered.double().mean())))
     return out
@@ -104,17 +105,19 @@ def main() -> None:
         generation = root / "rtv3_generation.json"
         relabelled = generation.is_file() and json.loads(generation.read_text()).get("source") == "dagger"
         batch, target = load_windows(root, relabelled, args.max_windows, args.seed)
-        parts: dict[str, list[torch.Tensor]] = {"maha": [], "logdet": [], "logw": []}
+        parts: dict[str, list[torch.Tensor]] = {"logn": [], "maha": [], "logw": []}
         n = target.shape[0]
         for start in tqdm(range(0, n, args.batch_size), desc=root.name, unit="batch"):
             chunk = {k: v[start : start + args.batch_size] for k, v in batch.items()}
             with torch.inference_mode():
                 mixture = policy.predict_step0_mixture(chunk, update_history=False)
             mu, cov = mixture.trans_mean.double(), mixture.trans_cov.double()
-            parts["maha"].append(posterior.mahalanobis_sq(target[start : start + args.batch_size, None], mu, cov))
-            parts["logdet"].append(torch.linalg.slogdet(cov)[1])
+            log_n, maha = posterior.gaussian_log_prob_and_mahalanobis_sq(
+                target[start : start + args.batch_size, None], mu, cov)
+            parts["logn"].append(log_n)
+            parts["maha"].append(maha)
             parts["logw"].append(mixture.log_weights.double())
-        rows = scale_table(*(torch.cat(parts[k]) for k in ("maha", "logdet", "logw")), SCALES)
+        rows = scale_table(*(torch.cat(parts[k]) for k in ("logn", "maha", "logw")), SCALES)
         best = min(rows, key=lambda r: r["nll"])
         kind = "relabelled closed-loop states" if relabelled else "demonstration windows"
         print(f"\n{root} ({n} {kind}); maximum-likelihood scale on the grid: {best['scale']:g}")
