@@ -382,6 +382,7 @@ class SharedController:
         self._init_batch(b)
         assert self._user_cov is not None
         active = user.norm(dim=-1) > c.input_threshold
+        commanded = user.abs() > c.input_threshold  # (B, 6) the axes this command gives
 
         no_grasps = torch.zeros(b, dtype=torch.bool)
         if features.GRASPS_MASK in observation:
@@ -410,7 +411,7 @@ class SharedController:
             if (active & ~no_grasps).any():
                 observed = None
                 if c.uncommanded_axes != "zero":
-                    observed = user.abs() > c.input_threshold
+                    observed = commanded
                     if c.uncommanded_axes == "missing_far":  # near the scene, a device axis at zero holds still
                         observed = observed | (self._commanded_axes & (dist <= c.autonomy_cutoff_distance)[:, None])
                 prior, fused = posterior.prior_and_fused_mixtures(
@@ -451,7 +452,7 @@ class SharedController:
             weights = shown.weights
             self._remember(shared, prior, fused)
         self._user_cov.update(user, active)
-        self._commanded_axes = self._commanded_axes | (user.abs() > c.input_threshold)
+        self._commanded_axes = self._commanded_axes | commanded
 
         action = clamp_twist_speed(action, c.max_linear_speed, c.max_angular_speed)
         if not torch.isfinite(action).all():  # defensive: never send NaN to a robot
