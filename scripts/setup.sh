@@ -27,7 +27,15 @@ want="$( (cat pyproject.toml $plugin/pyproject.toml; echo $plugin) | sha1sum | c
 have="$(cat $stamp 2>/dev/null || true)"
 # An install with the test extras also serves a plain set-up (the demo after the tests).
 if [[ "$have" != "$want" && ! ( -z "$extras" && "$have" == "${want}[dev]" ) ]]; then
-  log "installing rtv3-maniskill${extras} and its pinned dependencies into .venv (first time: several minutes, ~5 GB of wheels)"
+  # torch 2.10 from PyPI brings its CUDA libraries: the finished .venv is ~10 GB. Fail early
+  # with the numbers rather than halfway through pip with "No space left on device".
+  free_mb=$(( $(df -Pk . | awk 'NR==2 {print $4}') / 1024 ))
+  venv_mb=$(du -sm .venv | cut -f1)
+  if (( free_mb + venv_mb < 10500 )); then
+    log "ERROR: not enough disk space for .venv: it needs ~10.5 GB, and $(pwd) has ${free_mb} MB free (+ ${venv_mb} MB already in .venv)"
+    exit 1
+  fi
+  log "installing rtv3-maniskill${extras} and its pinned dependencies into .venv (first time: several minutes, ~5 GB of wheels, ~10 GB installed)"
   .venv/bin/pip install --quiet --upgrade "pip>=24"
   .venv/bin/pip install --quiet -e ".${extras}"
   .venv/bin/pip install --quiet --no-deps -e "./$plugin"
