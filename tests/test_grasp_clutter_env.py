@@ -160,16 +160,19 @@ def test_success_when_driven_to_target_pregrasp(env):
 
 def test_collision_when_driven_into_table(env):
     env.reset(seed=6)
+    assert env.unwrapped.robot_contact_kinds() == set()
     collided = False
-    # Straight down in the world frame, expressed in the TCP body frame.
-    for _ in range(120):
+    # Sideways out of the 30 cm workspace (the objects stay inside it), then straight down; world-frame
+    # velocities expressed in the TCP body frame.
+    for step in range(150):
         rot = env.unwrapped.tcp_pose_matrix[0, :3, :3]
-        v_body = rot.T @ torch.tensor([0.0, 0.0, -0.25])
+        v_body = rot.T @ torch.tensor([0.0, 0.25, 0.0] if step < 25 else [0.0, 0.0, -0.25])
         _, _, _, _, info = env.step(torch.cat([v_body, torch.zeros(4)])[None])
         if bool(info["collision"]):
             collided = True
             break
     assert collided
+    assert env.unwrapped.robot_contact_kinds() == {"table"}
 
 
 def test_nan_action_rejected(env):

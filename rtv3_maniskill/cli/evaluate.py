@@ -111,7 +111,8 @@ def _run_planning(args: argparse.Namespace) -> int:
         f"{k} {'n/a' if summary[k] is None else f'{100 * summary[k]:.1f} %'}" for k in ("SR", "CR", "TOR")
     )
     print(f"{summary['trials']} trials ({summary['no_start_pose']} without a start pose left out): {rates}")
-    print(json.dumps({k: summary[k] for k in ("success", "collision", "timeout", "mean_steps_success")}))
+    shown = ("success", "collision", "timeout", "mean_steps_success", "collisions_with")
+    print(json.dumps({k: summary[k] for k in shown}))
     print(f"wrote {config.output / 'planning_trials.csv'} and {config.output / 'planning_summary.json'}")
     return 0
 

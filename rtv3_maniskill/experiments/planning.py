@@ -18,7 +18,8 @@ Protocol:
 * control: every 50 ms step the policy's most likely action (ML setting: argmax z, then the
   mode of each Gaussian) from ``select_action``; ``policy.reset()`` per trial;
 * outcome per trial (exclusive, so SR + CR + TOR = 1): ``collision`` at the first step with
-  any robot contact (the env's ``info["collision"]``), else ``success`` at the first step whose
+  any robot contact (the env's ``info["collision"]``; the ``contact`` column says with what:
+  ``table``, ``object`` or ``self``), else ``success`` at the first step whose
   planning distance to a context grasp's pre-grasp, or its pi-about-z twin, is below 0.2
   (the paper's pose distance with rotation weight 0.3/pi, docs/PAPER_DETAILS.md "Metrics"), else
   ``timeout`` after 150 steps (7.5 s). Trials without a collision-free start pose are logged
@@ -63,8 +64,10 @@ GRIPPER_OPEN = 1.0
 """Normalised gripper command of ``pd_ee_twist`` (the Panda's ``pd_joint_pos`` gripper): open."""
 TRIAL_FIELDS = (
     "scene_seed", "grasp_index", "outcome", "steps", "start_distance", "final_distance", "min_distance",
-    "reached_grasp", "context_grasps", "start_attempts", "wall_time_s",
+    "reached_grasp", "context_grasps", "start_attempts", "wall_time_s", "contact",
 )
+CONTACT_KINDS = ("table", "object", "self")
+"""What a ``collision`` trial's robot touched (``contact`` column, "+"-joined when several)."""
 PAPER_TABLE1_FULL = {"SR": 0.904, "CR": 0.079, "TOR": 0.017}
 
 
@@ -230,6 +233,8 @@ def summarize(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
         CR=rate("collision"),
         TOR=rate("timeout"),
         mean_steps_success=float(np.mean(success_steps)) if success_steps else None,
+        collisions_with={k: sum(1 for r in rows if r["outcome"] == "collision" and k in r.get("contact", "").split("+"))
+                         for k in CONTACT_KINDS},
     )
 
 
@@ -379,7 +384,7 @@ class PlanningBenchmark:
         context_poses = self.base.grasp_poses[0, context_indices].double()
         row: dict[str, Any] = dict(
             scene_seed=int(self.scene_seed), grasp_index=grasp, context_grasps=int(len(context_indices)),
-            reached_grasp=-1, start_distance="", final_distance="", min_distance="",
+            reached_grasp=-1, start_distance="", final_distance="", min_distance="", contact="",
         )
         q_start, attempts = self.start_configuration(grasp, context_poses)
         row["start_attempts"] = attempts
@@ -411,6 +416,8 @@ class PlanningBenchmark:
             decided = trial_outcome(collision=bool(info["collision"][0]), success=reached)
             if decided is not None:
                 outcome, steps = decided, step
+                if decided == "collision":
+                    row["contact"] = "+".join(k for k in CONTACT_KINDS if k in self.base.robot_contact_kinds())
                 if decided == "success":
                     row["reached_grasp"] = int(context_indices[int(distances.argmin())])
                 break

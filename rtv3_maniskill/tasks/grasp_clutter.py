@@ -337,6 +337,25 @@ class GraspClutterEnv(BaseEnv):
         forces = self.agent.robot.get_net_contact_forces(self._contact_links)
         return (forces.norm(dim=-1) > self.collision_force_threshold).any(-1)
 
+    def robot_contact_kinds(self) -> set[str]:
+        """What the robot touches now in sub-scene 0 (CPU simulation): a subset of ``{"table",
+        "object", "self"}`` ("self": one robot link against another). Read it at a step where
+        ``robot_in_collision`` holds, to say what the contact was."""
+        if self.device.type != "cpu":
+            raise NotImplementedError("robot_contact_kinds reads the CPU simulation's contact list")
+        robot = {link.name for link in self.agent.robot.get_links()}
+        kinds = set()
+        for contact in self.scene.px.get_contacts():
+            names = [body.entity.name for body in contact.bodies]
+            touching = [name in robot for name in names]
+            if not any(touching) or "panda_link0" in names:
+                continue
+            if not any(np.linalg.norm(point.impulse) > 0 for point in contact.points):
+                continue
+            other = names[1] if touching[0] else names[0]
+            kinds.add("self" if all(touching) else "table" if "table" in other else "object")
+        return kinds
+
     def evaluate(self) -> dict:
         distance = self.pregrasp_distance()
         success = distance < self.success_threshold
