@@ -430,21 +430,6 @@ def test_se3_equivariance(factorized: bool):
     torch.testing.assert_close(a.trans_cov, b.trans_cov, atol=1e-4, rtol=1e-4)
 
 
-def test_table_points_show_the_height_above_the_table_and_nothing_else():
-    """With ``table_points`` the prior sees the table plane (world z = table_height): lifting the whole
-    scene changes the prediction, while a slide along the table and a turn about its normal do not."""
-    policy = make_policy(seed=4, table_points=6).eval()
-    obs = observation_only(make_scene_batch(policy.config, batch=2, seed=5))
-    slide = se3.make_transform(se3.so3_exp(torch.tensor([0.0, 0.0, 1.3])), torch.tensor([0.2, -0.1, 0.0]))
-    lift = se3.make_transform(torch.eye(3), torch.tensor([0.0, 0.0, 0.15]))
-    torch.testing.assert_close(policy.predict_action_chunk(transform_world(obs, slide)),
-                               policy.predict_action_chunk(obs), atol=1e-4, rtol=1e-4)
-    lifted = policy.predict_action_chunk(transform_world(obs, lift))
-    assert (lifted - policy.predict_action_chunk(obs)).abs().max() > 1e-3
-    with pytest.raises(ValueError, match="table_points"):
-        RTV3Config(device="cpu", table_points=-1)
-
-
 # ----------------------------------------------------------------------------- mixture
 
 

@@ -83,10 +83,6 @@ class RTV3Config(PreTrainedConfig):
             Adds no parameters, so weights move between the two.
         point_decoder_heads / point_decoder_layers: decoder queried by h0_d (4 heads, 1 layer).
         use_grasp_encoder / use_point_encoder: ablation switches (paper Table I).
-        table_points: side of a square grid of points on the table top (world z = ``table_height``),
-            centred under the TCP and ``table_grid_extent`` m wide, added to the scene cloud before the
-            point encoder (0 = none). The captured cloud is cropped above the table, so without them the
-            prior never sees the surface it must not touch. Adds no parameters, only tokens.
 
     Scaling:
         translation_scale: multiplies translational velocities in and out of the network (docs/PAPER_DETAILS.md: 5).
@@ -199,9 +195,6 @@ class RTV3Config(PreTrainedConfig):
     point_stem_poolings: int = 1
     point_decoder_heads: int = 4
     point_decoder_layers: int = 1
-    table_points: int = 0
-    table_grid_extent: float = 0.4
-    table_height: float = 0.0
 
     transformer_dropout: float = 0.1
 
@@ -296,12 +289,6 @@ class RTV3Config(PreTrainedConfig):
         if not isinstance(self.point_stem_poolings, int) or self.point_stem_poolings < 0:
             raise ValueError("RTV3Config.point_stem_poolings must be an integer >= 0, "
                              f"got {self.point_stem_poolings!r}")
-        if not isinstance(self.table_points, int) or self.table_points < 0:
-            raise ValueError(f"RTV3Config.table_points must be an integer >= 0, got {self.table_points!r}")
-        if self.table_points and not (math.isfinite(self.table_grid_extent) and self.table_grid_extent > 0):
-            raise ValueError(f"table_grid_extent must be > 0 (metres), got {self.table_grid_extent}")
-        if not math.isfinite(self.table_height):
-            raise ValueError(f"table_height must be finite, got {self.table_height}")
         if not self.point_grid_size > 0:
             raise ValueError(f"point_grid_size must be > 0 (metres), got {self.point_grid_size}")
         if self.latent_training not in LATENT_TRAINING_MODES:

@@ -140,27 +140,6 @@ def points_in_frame(frame: torch.Tensor, xyz: torch.Tensor) -> torch.Tensor:
     return ((xyz - trans)[..., None, :] @ rot)[..., 0, :]
 
 
-TABLE_RGB = (0.5, 0.5, 0.5)
-"""Colour of the table points (the captured cloud never contains the table, so any fixed value serves)."""
-
-
-def table_grid(frame: torch.Tensor, side: int, extent: float, height: float) -> torch.Tensor:
-    """``(B, side**2, 6)`` xyz+rgb world points: a ``side x side`` grid, ``extent`` m wide, on the
-    plane z = ``height``, centred under the origin of ``frame (B, 4, 4)`` and turned with the frame's
-    heading (its x axis projected on the plane; its y axis where x points straight up or down), so
-    that the grid seen from the frame depends only on the frame's height and tilt above the plane."""
-    offsets = torch.linspace(-extent / 2, extent / 2, side, dtype=frame.dtype, device=frame.device)
-    gx, gy = torch.meshgrid(offsets, offsets, indexing="ij")
-    heading = frame[:, :2, 0]
-    heading = torch.where(heading.norm(dim=-1, keepdim=True) > 1e-3, heading, frame[:, :2, 1])
-    u = heading / heading.norm(dim=-1, keepdim=True).clamp_min(1e-9)  # (B, 2)
-    v = torch.stack([-u[:, 1], u[:, 0]], -1)
-    xy = frame[:, None, :2, 3] + gx.flatten()[:, None] * u[:, None] + gy.flatten()[:, None] * v[:, None]  # (B, S^2, 2)
-    z = torch.full_like(xy[..., :1], height)
-    rgb = torch.tensor(TABLE_RGB, dtype=frame.dtype, device=frame.device).expand_as(torch.cat([xy, z], -1))
-    return torch.cat([xy, z, rgb], -1)
-
-
 _IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
 
 

@@ -136,15 +136,9 @@ class RTV3Model(nn.Module):
         h0_d = h_last[-1]  # h0_d = LSTM(x_{-T+1:0})
         parts = [h0_d]
         if self.point_encoder is not None:
-            cloud, cloud_mask = ctx.point_cloud, ctx.point_mask
-            if c.table_points:
-                table = egocentric.table_grid(current, c.table_points, c.table_grid_extent, c.table_height)
-                cloud = torch.cat([cloud, table.to(cloud)], 1)
-                cloud_mask = torch.cat([cloud_mask, torch.ones(table.shape[:2], dtype=cloud_mask.dtype,
-                                                               device=cloud_mask.device)], 1)
-            xyz = egocentric.points_in_frame(current, cloud[..., :3])  # T_0^-1 P
-            feat = torch.cat([xyz * c.position_scale, cloud[..., 3:6]], -1)
-            parts.append(self.point_encoder(xyz, feat, cloud_mask, h0_d))  # h_pcl
+            xyz = egocentric.points_in_frame(current, ctx.point_cloud[..., :3])  # T_0^-1 P
+            feat = torch.cat([xyz * c.position_scale, ctx.point_cloud[..., 3:6]], -1)
+            parts.append(self.point_encoder(xyz, feat, ctx.point_mask, h0_d))  # h_pcl
         if grasp_relative is not None:
             log_map = logs[:, steps:]
             feats = [log_map[..., :3] * c.position_scale, log_map[..., 3:]]
