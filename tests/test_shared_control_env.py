@@ -182,6 +182,7 @@ def test_run_episode_can_end_a_trial_at_the_first_contact(env):
     stopped = run_episode(env, DirectTeleoperation(*LIMITS), DivingUser(), max_steps=60, seed=5, options=options,
                           stop_on_contact=True)
     assert stopped.steps == first and stopped.outcome == "collision" and not stopped.success
+    assert stopped.contact and set(stopped.contact.split("+")) <= {"table", "object"}  # it dives, arm stretched
     assert [d["collision"] for d in stopped.diagnostics] == [False] * (first - 1) + [True]
     # Identical up to the contact (the contact step itself is solved with contact state left by the
     # previous episode, so it may differ by a fraction of a millimetre).
@@ -400,15 +401,18 @@ def test_neoss_safety_filter_keeps_a_diving_user_out_of_the_scene():
         SharedControlEnv(num_points=N_POINTS, safety_filter="bumper")
 
 
-def test_results_written_before_the_safety_filter_column_still_read(tmp_path):
+@pytest.mark.parametrize("columns_added_since", [1, 2])
+def test_results_written_before_the_safety_filter_and_contact_columns_still_read(tmp_path, columns_added_since):
     from rtv3_maniskill.experiments.shared_benchmark import RESULT_FIELDS, read_results
 
     old = tmp_path / "results.csv"
-    row = dict(_row(900000, "direct", "success", 30), final_distance=0.05, autonomous_steps=0, user_only_steps=30,
-               user_seed=1, wall_time_s=1.0)
-    old.write_text(",".join(RESULT_FIELDS[:-1]) + "\n" + ",".join(str(row[k]) for k in RESULT_FIELDS[:-1]) + "\n")
+    row = dict(_row(900000, "direct", "collision", 30), final_distance=0.05, autonomous_steps=0, user_only_steps=30,
+               user_seed=1, wall_time_s=1.0, qp_infeasible_steps=2)
+    fields = RESULT_FIELDS[:-columns_added_since]
+    old.write_text(",".join(fields) + "\n" + ",".join(str(row[k]) for k in fields) + "\n")
     (read,) = read_results(old)
-    assert read["outcome"] == "success" and read["qp_infeasible_steps"] == "0"
+    assert read["outcome"] == "collision" and read["contact"] == ""
+    assert read["qp_infeasible_steps"] == ("0" if columns_added_since == 2 else "2")
 
 
 def test_trials_start_at_the_ready_pose_and_infeasible_goals_are_never_run(tmp_path, env):

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import ENV_ID, features
-from rtv3_maniskill.experiments.planning import trial_outcome
+from rtv3_maniskill.experiments.planning import describe_contact, trial_outcome
 from rtv3_maniskill.shared_control.assistance import METHOD_NAMES, AssistanceMethod
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
 from rtv3_maniskill.shared_control.hindsight_optimization import HindsightOptimization
@@ -272,6 +272,8 @@ class EpisodeResult:
         final_distance: pose distance to the pre-grasp at the end.
         wall_time: seconds the episode took.
         qp_infeasible_steps: steps a safety filter stopped the arm (its QP had no solution).
+        contact: what the robot touched at its first contact (``"table"``, ``"object"``, ``"self"``,
+            "+"-joined when several; ``""`` without a contact, or where the simulation cannot say).
     """
 
     success: bool
@@ -283,6 +285,7 @@ class EpisodeResult:
     final_distance: float = float("nan")
     wall_time: float = 0.0
     qp_infeasible_steps: int = 0
+    contact: str = ""
 
     @property
     def outcome(self) -> str:
@@ -335,6 +338,7 @@ def run_episode(env: SharedControlEnv, method: AssistanceMethod | None, user: An
     diagnostics: list[dict[str, Any]] = []
     success = bool(info["success"][0])
     collision = False
+    contact = ""
     steps = 0
     distance = float(info["pregrasp_distance"][0])
     while not success and steps < max_steps and not (stop_on_contact and collision):
@@ -343,6 +347,8 @@ def run_episode(env: SharedControlEnv, method: AssistanceMethod | None, user: An
         steps += 1
         success = bool(info["success"][0])
         hit = bool(info["collision"][0])
+        if hit and not collision:
+            contact = describe_contact(base)
         collision = collision or hit
         distance = float(info["pregrasp_distance"][0])
         diagnostics.append({
@@ -358,5 +364,5 @@ def run_episode(env: SharedControlEnv, method: AssistanceMethod | None, user: An
     return EpisodeResult(
         success=success, collision=collision, steps=steps, trajectory=np.stack(poses), diagnostics=diagnostics,
         frames=frames, final_distance=distance, wall_time=time.perf_counter() - start,
-        qp_infeasible_steps=env.qp_infeasible_steps - infeasible_before,
+        qp_infeasible_steps=env.qp_infeasible_steps - infeasible_before, contact=contact,
     )

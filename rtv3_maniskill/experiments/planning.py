@@ -68,6 +68,15 @@ TRIAL_FIELDS = (
 )
 CONTACT_KINDS = ("table", "object", "self")
 """What a ``collision`` trial's robot touched (``contact`` column, "+"-joined when several)."""
+
+
+def describe_contact(base: Any) -> str:
+    """What the robot of sub-scene 0 of ``base`` (a ``GraspClutterEnv``) touches now, "+"-joined in
+    ``CONTACT_KINDS`` order; ``""`` where the simulation does not list contacts (GPU)."""
+    if base.device.type != "cpu":
+        return ""
+    kinds = base.robot_contact_kinds()
+    return "+".join(kind for kind in CONTACT_KINDS if kind in kinds)
 PAPER_TABLE1_FULL = {"SR": 0.904, "CR": 0.079, "TOR": 0.017}
 
 
@@ -417,7 +426,7 @@ class PlanningBenchmark:
             if decided is not None:
                 outcome, steps = decided, step
                 if decided == "collision":
-                    row["contact"] = "+".join(k for k in CONTACT_KINDS if k in self.base.robot_contact_kinds())
+                    row["contact"] = describe_contact(self.base)
                 if decided == "success":
                     row["reached_grasp"] = int(context_indices[int(distances.argmin())])
                 break

@@ -55,7 +55,11 @@ from rtv3_maniskill.records import RecordStore, SettingsMismatch, scene_seeds, s
 RESULT_FIELDS = (
     "scene_seed", "grasp_index", "user", "method", "outcome", "success", "collision", "steps",
     "final_distance", "autonomous_steps", "user_only_steps", "user_seed", "wall_time_s", "qp_infeasible_steps",
+    "contact",
 )
+_LATER_RESULT_FIELDS = {"qp_infeasible_steps": "0", "contact": ""}
+"""Columns added to ``results.csv`` after its first version, last first in ``RESULT_FIELDS``, with the value
+an older file reads as."""
 SUMMARY_FIELDS = ("user", "method", "trials", "SR", "CR", "TOR", "reached", "mean_iterations",
                   "paired_trials", "wins", "losses", "mcnemar_p")
 DEFAULT_USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
@@ -245,16 +249,19 @@ def results_store(output: Path, settings: dict[str, Any] | None) -> RecordStore:
 
 
 def _result_rows(path: Path) -> list[dict[str, str]]:
-    """The complete rows of a ``results.csv``; one written before ``qp_infeasible_steps`` existed
-    reads with that column 0 (it can be summarised and merged, not resumed)."""
-    try:
-        return RecordStore.read(path, RESULT_FIELDS, _is_complete_result)
-    except ValueError as err:
+    """The complete rows of a ``results.csv``; one written before a column of ``_LATER_RESULT_FIELDS``
+    existed reads with that column's default (it can be summarised and merged, not resumed)."""
+    first_error = None
+    for dropped in range(len(_LATER_RESULT_FIELDS) + 1):
+        fields = RESULT_FIELDS[:len(RESULT_FIELDS) - dropped]
         try:
-            rows = RecordStore.read(path, RESULT_FIELDS[:-1], _is_complete_result)
-        except ValueError:
-            raise BenchmarkError(str(err)) from None
-        return [dict(row, qp_infeasible_steps="0") for row in rows]
+            rows = RecordStore.read(path, fields, _is_complete_result)
+        except ValueError as err:
+            first_error = first_error or err
+            continue
+        missing = {name: _LATER_RESULT_FIELDS[name] for name in RESULT_FIELDS[len(fields):]}
+        return [dict(row, **missing) for row in rows]
+    raise BenchmarkError(str(first_error)) from None
 
 
 def read_results(path: Path) -> list[dict[str, Any]]:
@@ -586,7 +593,7 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
                             final_distance=f"{result.final_distance:.4f}",
                             autonomous_steps=counts.get("autonomous", 0), user_only_steps=counts.get("user_only", 0),
                             user_seed=u_seed, wall_time_s=f"{time.perf_counter() - start:.2f}",
-                            qp_infeasible_steps=result.qp_infeasible_steps,
+                            qp_infeasible_steps=result.qp_infeasible_steps, contact=result.contact,
                         ))
                         wins[method_name].append(int(result.outcome == "success"))
                         bar.set_postfix({method_label(m): f"{100 * np.mean(v):.0f}%"
