@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 from pathlib import Path
 
 import numpy as np
@@ -61,9 +62,15 @@ def main() -> None:
                 writer.writerows(trace)
             cos_v = float(np.median([r["linear_alignment"] for r in trace])) if trace else float("nan")
             cos_w = float(np.median([r["angular_alignment"] for r in trace])) if trace else float("nan")
-            print(f"scene {scene} grasp {grasp}: {row['outcome']} after {row['steps']} steps "
+            touched = f" with the {row['contact']}" if row["contact"] else ""
+            last = trace[-1] if trace else {}
+            print(f"scene {scene} grasp {grasp}: {row['outcome']}{touched} after {row['steps']} steps "
                   f"(start distance {row['start_distance']}, final {row['final_distance']}; median cosine with "
-                  f"the way to the pre-grasp: v {cos_v:.2f}, w {cos_w:.2f}); wrote {path}")
+                  f"the way to the pre-grasp: v {cos_v:.2f}, w {cos_w:.2f}); last step: TCP "
+                  f"{last.get('tcp_height', math.nan):.3f} m above the table, "
+                  f"{last.get('translation_error', math.nan):.3f} m from the pre-grasp, approach "
+                  f"{last.get('approach_error_deg', math.nan):.0f} deg and roll "
+                  f"{last.get('roll_error_deg', math.nan):.0f} deg off; wrote {path}")
     finally:
         bench.close()
 

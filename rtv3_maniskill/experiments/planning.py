@@ -104,7 +104,9 @@ def trace_step(step: int, tcp_pose: torch.Tensor, grasp_pose: torch.Tensor, twis
     pre-grasp (the nearer of it and its pi-about-z twin), the commanded speeds (m/s, rad/s), and
     how well the command points at that pre-grasp: the cosine of ``v`` and of ``w`` with the two
     halves of ``T_tcp^-1 T_pre`` (its translation and its rotation vector, TCP frame; +1 = straight
-    at it, -1 = away)."""
+    at it, -1 = away). The rotation error splits into the angle between the two approach (z) axes
+    and the roll about the approach (the twist part of a swing-twist split, deg); ``tcp_height`` is
+    the TCP's world z (m, the table top is 0)."""
     from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 
     tcp = tcp_pose.double()
@@ -116,8 +118,13 @@ def trace_step(step: int, tcp_pose: torch.Tensor, grasp_pose: torch.Tensor, twis
     def cosine(a: torch.Tensor, b: torch.Tensor) -> float:
         return float(torch.dot(a, b) / (a.norm() * b.norm()).clamp_min(1e-12))
 
+    quat = se3.matrix_to_quat(to_target[:3, :3])  # wxyz
+    roll = 2.0 * math.atan2(float(quat[3]), float(quat[0]))
+    roll = (roll + math.pi) % (2.0 * math.pi) - math.pi
     return dict(step=step, distance=distance, translation_error=float(straight[:3].norm()),
                 rotation_error_deg=math.degrees(float(straight[3:].norm())),
+                approach_error_deg=math.degrees(math.acos(max(-1.0, min(1.0, float(to_target[2, 2]))))),
+                roll_error_deg=abs(math.degrees(roll)), tcp_height=float(tcp[2, 3]),
                 linear_speed=float(command[:3].norm()), angular_speed=float(command[3:].norm()),
                 linear_alignment=cosine(command[:3], straight[:3]), angular_alignment=cosine(command[3:], straight[3:]),
                 collision=float(collision))
