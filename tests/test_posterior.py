@@ -556,6 +556,30 @@ def test_missing_far_leaves_uncommanded_axes_to_the_prior_only_away_from_the_sce
     assert act("missing_far", far, (turn,))[5] > 2 * held[5].abs()
 
 
+def test_missing_far_group_holds_every_axis_of_a_kind_the_user_has_used_near_the_scene():
+    """``uncommanded_axes="missing_far_group"``: once the user has turned about one axis, rotation is
+    on the device, so near the scene the prior fills no rotation axis (``missing_far`` still fills
+    the two the user has not touched); far from the scene both leave them to the prior."""
+    user = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    roll = torch.tensor([[0.27, 0.0, 0.0, 0.3, 0.0, 0.0]])  # rotation about x only
+    far = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.0),))
+    near = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.25),))
+
+    def act(axes: str, obs: dict) -> torch.Tensor:
+        ctrl = SharedController(HandBuiltPrior(weights=(0.7, 0.3)), SharedControlConfig(
+            uncommanded_axes=axes, adapt_user_covariance=False, belief_memory=0.0))
+        ctrl.step(obs, roll)
+        action = ctrl.step(obs, user)[0]
+        assert ctrl.last_diagnostics.mode == "shared"
+        return action
+
+    torch.testing.assert_close(act("missing_far_group", far), act("missing_far", far))
+    grouped, per_axis = act("missing_far_group", near), act("missing_far", near)
+    torch.testing.assert_close(grouped, act("zero", near))
+    assert per_axis[5] > 5 * grouped[5].abs()  # class 1 turns about z: held back once rotation was used
+    assert SharedControlConfig().uncommanded_axes == "missing_far_group"
+
+
 def test_ood_gate_hands_control_to_user_for_three_steps_then_gives_it_back():
     prior = HandBuiltPrior()
     ctrl = SharedController(prior, SharedControlConfig.preset("paper", ood_steps=3, adapt_user_covariance=False))

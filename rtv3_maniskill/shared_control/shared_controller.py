@@ -6,10 +6,10 @@ Per step and batch element, one of three modes (``SharedControlDiagnostics.modes
   prior's step-0 mixture (:func:`posterior.prior_and_fused_mixtures`, which also gives the prior
   mixture, :func:`posterior.fuse_user_command` alone) and execute the mode of
   the fused mixture (:func:`posterior.mixture_mode`). The zero axes of a command are, by
-  default (``uncommanded_axes="missing_far"``), axes the device does not give while the EE is
-  farther than ``autonomy_cutoff_distance`` from the scene: they are not fused, so the prior
-  fills them in (a mode-switching or single-axis user); nearer, an axis the user has commanded
-  before means "hold still".
+  default (``uncommanded_axes="missing_far_group"``), axes the device does not give while the EE
+  is farther than ``autonomy_cutoff_distance`` from the scene: they are not fused, so the prior
+  fills them in (a mode-switching or single-axis user); nearer, a zero axis of a kind
+  (translation or rotation) the user has commanded before means "hold still".
 * ``"autonomous"``: no user command (``None`` or all zeros), asynchronous mode on, and
   the EE is farther than ``autonomy_cutoff_distance`` from every scene point -> execute
   the prior's most likely action (argmax class, then its Gaussians' means; :func:`most_likely_twist`).
@@ -45,7 +45,7 @@ from rtv3_maniskill.twist_mixture import TwistMixture
 MODES = ("shared", "autonomous", "user_only")
 EVIDENCE_FLOOR = 20.0
 """Nats: the recursive belief never rules a class out by more than this (``belief_memory``)."""
-UNCOMMANDED_AXES = ("missing", "zero", "missing_far")
+UNCOMMANDED_AXES = ("missing", "zero", "missing_far", "missing_far_group")
 
 
 class StepZeroPrior(Protocol):
@@ -84,7 +84,7 @@ class SharedControlConfig:
     ood_dofs: str = "twist"
     """What the OOD test looks at: ``"twist"`` (translation and rotation) or ``"translation"``
     (docs/PAPER_DETAILS.md); see :func:`posterior.is_out_of_distribution`."""
-    uncommanded_axes: str = "missing_far"
+    uncommanded_axes: str = "missing_far_group"
     """How a zero axis of a user command (``|u_i| <= input_threshold``) of a command that is not
     zero altogether is read: ``"missing"``, an axis the device does not give (a mode-switching
     or single-axis user), so neither the fusion nor the OOD test uses it and the prior fills it
@@ -92,7 +92,11 @@ class SharedControlConfig:
     ``"missing_far"``, "hold still" within ``autonomy_cutoff_distance`` of the scene if the user has
     commanded that axis since ``reset()`` (it is on the device: there, filling it is autonomy near
     clutter), missing otherwise (farther away, or an axis the device never gave, e.g. a
-    translation-only device's rotation)."""
+    translation-only device's rotation); ``"missing_far_group"`` (the default), the same with the
+    device's axes known by kind: once the user has commanded any translation (rotation) axis, every
+    translation (rotation) axis is on the device, so near the scene the prior fills none of them
+    (a one-axis-at-a-time user no longer has the prior turn or push the hand about the axes it has
+    not reached yet)."""
     user_trans_var: float = 0.03
     """Initial S_u diagonal ((m/s)^2)."""
     user_rot_var: float = 0.1
@@ -162,7 +166,7 @@ class SharedControlConfig:
 
 FUSION_PRESETS: dict[str, dict[str, Any]] = {
     "tuned": dict(ood_covariance="predictive", ood_alpha=0.99, belief_memory=1.0, prior_covariance_scale=100.0,
-                  uncommanded_axes="missing_far"),
+                  uncommanded_axes="missing_far_group"),
     "paper": dict(ood_covariance="class", ood_alpha=0.85, belief_memory=0.0, prior_covariance_scale=1.0,
                   uncommanded_axes="missing"),
 }
@@ -300,7 +304,7 @@ class SharedController:
         self._batch_size: int | None = None
         self._ood_remaining = torch.zeros(0, dtype=torch.long)
         self._commanded_axes = torch.zeros(0, 6, dtype=torch.bool)
-        """``(B, 6)`` axes the user has commanded since ``reset()`` (the device's axes; ``missing_far``)."""
+        """``(B, 6)`` axes the user has commanded since ``reset()`` (the device's axes; ``missing_far*``)."""
         self._user_cov: posterior.UserCovarianceEstimator | None = None
         self._evidence: torch.Tensor | None = None
         """``(B, K)`` accumulated log-likelihood of the user's commands per class (``belief_memory``)."""
@@ -412,8 +416,12 @@ class SharedController:
                 observed = None
                 if c.uncommanded_axes != "zero":
                     observed = commanded
-                    if c.uncommanded_axes == "missing_far":  # near the scene, a device axis at zero holds still
-                        observed = observed | (self._commanded_axes & (dist <= c.autonomy_cutoff_distance)[:, None])
+                    near = (dist <= c.autonomy_cutoff_distance)[:, None]
+                    used = self._commanded_axes
+                    if c.uncommanded_axes == "missing_far_group":  # a kind (v or w) used once: all its axes
+                        used = used.view(b, 2, 3).any(-1, keepdim=True).expand(b, 2, 3).reshape(b, 6)
+                    if c.uncommanded_axes in ("missing_far", "missing_far_group"):  # near the scene, hold still
+                        observed = observed | (used & near)
                 prior, fused = posterior.prior_and_fused_mixtures(
                     mixture, user, s_u, g_u, c.reweight_rotation_at, observed=observed)
                 fired = (active & posterior.is_out_of_distribution(fused, c.ood_alpha, c.ood_covariance, c.ood_dofs)
