@@ -493,6 +493,23 @@ def test_no_input_near_the_object_surface_hands_control_to_the_user():
     assert torch.equal(ctrl_sync.step(make_observation(), None), torch.zeros(1, 6))
 
 
+def test_the_table_top_is_part_of_the_scene_for_the_proximity_rules():
+    """The cloud is cropped above the table, so the table top (``table_height``) counts on its own:
+    5 cm above it, far from every cloud point, there is no autonomy (``table_height=None``: there is)."""
+    obs = make_observation(ee=(0.0, 0.0, 0.05), cloud_points=((0.5, 0.5, 0.0),))
+    assert surface_distance(obs)[0] > 0.5
+    assert surface_distance(obs, table_height=0.0)[0] == pytest.approx(0.05)
+    assert surface_distance(obs, table_height=-0.2)[0] > 0.2  # a table farther than the cloud
+    ctrl = SharedController(HandBuiltPrior(), SharedControlConfig())
+    ctrl.step(obs, None)
+    assert ctrl.last_diagnostics.mode == "user_only"
+    ctrl = SharedController(HandBuiltPrior(), SharedControlConfig(table_height=None))
+    ctrl.step(obs, None)
+    assert ctrl.last_diagnostics.mode == "autonomous"
+    with pytest.raises(ValueError, match="table_height"):
+        SharedControlConfig(table_height=math.nan)
+
+
 def test_user_command_gives_shared_control_that_blends_towards_the_matching_class():
     prior = HandBuiltPrior(weights=(0.7, 0.3))
     # the hand-built prior's covariances are taken as they are (the paper's reading)

@@ -11,7 +11,8 @@ Per step and batch element, one of three modes (``SharedControlDiagnostics.modes
   fills them in (a mode-switching or single-axis user); nearer, a zero axis of a kind
   (translation or rotation) the user has commanded before means "hold still".
 * ``"autonomous"``: no user command (``None`` or all zeros), asynchronous mode on, and
-  the EE is farther than ``autonomy_cutoff_distance`` from every scene point -> execute
+  the EE is farther than ``autonomy_cutoff_distance`` from every scene point and from the table
+  top (``table_height``; the cloud is cropped above it) -> execute
   the prior's most likely action (argmax class, then its Gaussians' means; :func:`most_likely_twist`).
 * ``"user_only"``: the user's own command is executed (zeros if none). Happens (a) with
   no command within ``autonomy_cutoff_distance`` of the object surface (the user has
@@ -70,6 +71,9 @@ class SharedControlConfig:
     autonomy_cutoff_distance: float = 0.07
     """Asynchronous autonomy is off within this distance (m) of the nearest scene point.
     The paper gives no number; 7 cm sits just outside the 5 cm pre-grasp offset."""
+    table_height: float | None = 0.0
+    """World z (m) of the table top, part of the scene for ``autonomy_cutoff_distance`` (the point
+    cloud is cropped above it); ``GraspClutter-v1``'s table top is at 0. None: the cloud alone."""
     input_threshold: float = 1e-6
     """A user twist with norm <= this counts as "no command"; an axis with ``|u_i|`` <= this
     counts as not commanded (see ``uncommanded_axes``)."""
@@ -144,6 +148,8 @@ class SharedControlConfig:
         check_speed_limits(self.max_linear_speed, self.max_angular_speed)
         if not (math.isfinite(self.autonomy_cutoff_distance) and self.autonomy_cutoff_distance >= 0):
             raise ValueError(f"autonomy_cutoff_distance must be >= 0, got {self.autonomy_cutoff_distance}")
+        if self.table_height is not None and not math.isfinite(self.table_height):
+            raise ValueError(f"table_height must be a finite height (m) or None, got {self.table_height}")
         if self.ood_steps < 0:
             raise ValueError(f"ood_steps must be >= 0, got {self.ood_steps}")
         if self.ood_covariance not in posterior.OOD_COVARIANCES:
@@ -235,12 +241,16 @@ class SharedControlDiagnostics:
         return self._entropy_bounds[3]
 
 
-def surface_distance(observation: dict[str, Any]) -> torch.Tensor:
+def surface_distance(observation: dict[str, Any], table_height: float | None = None) -> torch.Tensor:
     """``(B,)`` distance (m) from the EE position (``observation.state[..., EE_POS]``, world) to the
-    nearest valid point of ``observation.point_cloud`` (world xyz); inf without valid points."""
+    nearest valid point of ``observation.point_cloud`` (world xyz), or to the table top (the plane
+    z = ``table_height``) where that is nearer; inf without either."""
     state = torch.as_tensor(observation[features.STATE])
     ee = (state[None] if state.ndim == 1 else state)[:, features.EE_POS].double()
     b = ee.shape[0]
+    if table_height is not None:
+        above_table = ee[:, 2] - table_height
+        return torch.minimum(surface_distance(observation), above_table)
     if features.POINT_CLOUD not in observation:
         return torch.full((b,), math.inf, dtype=torch.float64)
     cloud = features.unflatten(features.POINT_CLOUD, torch.as_tensor(observation[features.POINT_CLOUD]))
@@ -394,7 +404,7 @@ class SharedController:
             gmask = gmask[None] if gmask.ndim == 1 else gmask
             no_grasps = (gmask > 0.5).sum(-1) == 0
 
-        dist = surface_distance(observation)
+        dist = surface_distance(observation, c.table_height)
         in_window = self._ood_remaining > 0
         self._ood_remaining = (self._ood_remaining - 1).clamp_min(0)
         s_u, g_u = self._user_cov.trans_cov.clone(), self._user_cov.rot_cov.clone()
