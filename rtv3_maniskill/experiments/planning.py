@@ -77,6 +77,8 @@ def describe_contact(base: Any) -> str:
         return ""
     kinds = base.robot_contact_kinds()
     return "+".join(kind for kind in CONTACT_KINDS if kind in kinds)
+
+
 PAPER_TABLE1_FULL = {"SR": 0.904, "CR": 0.079, "TOR": 0.017}
 
 

@@ -58,8 +58,8 @@ RESULT_FIELDS = (
     "contact",
 )
 _LATER_RESULT_FIELDS = {"qp_infeasible_steps": "0", "contact": ""}
-"""Columns added to ``results.csv`` after its first version, last first in ``RESULT_FIELDS``, with the value
-an older file reads as."""
+"""Columns added to ``results.csv`` after its first version (the last ones of ``RESULT_FIELDS``, in the
+order they were added), with the value a file written before them reads as."""
 SUMMARY_FIELDS = ("user", "method", "trials", "SR", "CR", "TOR", "reached", "mean_iterations",
                   "paired_trials", "wins", "losses", "mcnemar_p")
 DEFAULT_USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
