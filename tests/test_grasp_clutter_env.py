@@ -160,7 +160,7 @@ def test_success_when_driven_to_target_pregrasp(env):
 
 def test_collision_when_driven_into_table(env):
     env.reset(seed=6)
-    assert env.unwrapped.robot_contact_kinds() == set()
+    assert env.unwrapped.robot_contact_kinds() == [set()]
     collided = False
     # Sideways out of the 30 cm workspace (the objects stay inside it), then straight down; world-frame
     # velocities expressed in the TCP body frame.
@@ -172,7 +172,20 @@ def test_collision_when_driven_into_table(env):
             collided = True
             break
     assert collided
-    assert env.unwrapped.robot_contact_kinds() == {"table"}
+    assert env.unwrapped.robot_contact_kinds() == [{"table"}]
+
+
+def test_contact_of_the_arm_with_itself_is_told_apart(env):
+    # Down and back towards the base: the elbow folds onto the shoulder before the hand meets anything.
+    env.reset(seed=6)
+    for _ in range(120):
+        rot = env.unwrapped.tcp_pose_matrix[0, :3, :3]
+        v_body = rot.T @ torch.tensor([-0.15, 0.0, -0.25])
+        _, _, _, _, info = env.step(torch.cat([v_body, torch.zeros(4)])[None])
+        if bool(info["collision"]):
+            break
+    assert bool(info["collision"])
+    assert env.unwrapped.robot_contact_kinds() == [{"self"}]
 
 
 def test_nan_action_rejected(env):

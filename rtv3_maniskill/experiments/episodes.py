@@ -273,7 +273,7 @@ class EpisodeResult:
         wall_time: seconds the episode took.
         qp_infeasible_steps: steps a safety filter stopped the arm (its QP had no solution).
         contact: what the robot touched at its first contact (``"table"``, ``"object"``, ``"self"``,
-            "+"-joined when several; ``""`` without a contact, or where the simulation cannot say).
+            "+"-joined when several; ``""`` without a contact).
     """
 
     success: bool

@@ -166,6 +166,8 @@ class GraspClutterEnv(BaseEnv):
 
     def _load_scene(self, options: dict):
         self._contact_links = None
+        self._contact_pairs = None  # robot_contact_kinds' body pairs (and GPU query) belong to this scene
+        self._contact_query = None
         self.table_scene = TableSceneBuilder(self, robot_init_qpos_noise=0.0)
         self.table_scene.build()
         self.table_scene.table.set_pose(self._table_pose)
@@ -337,23 +339,46 @@ class GraspClutterEnv(BaseEnv):
         forces = self.agent.robot.get_net_contact_forces(self._contact_links)
         return (forces.norm(dim=-1) > self.collision_force_threshold).any(-1)
 
-    def robot_contact_kinds(self) -> set[str]:
-        """What the robot touches now in sub-scene 0 (CPU simulation): a subset of ``{"table",
-        "object", "self"}`` ("self": one robot link against another). Read it at a step where
-        ``robot_in_collision`` holds, to say what the contact was."""
-        if self.device.type != "cpu":
-            raise NotImplementedError("robot_contact_kinds reads the CPU simulation's contact list")
-        robot = {link.name for link in self.agent.robot.get_links()}
-        kinds = set()
-        for contact in self.scene.px.get_contacts():
-            names = [body.entity.name for body in contact.bodies]
-            touching = [name in robot for name in names]
-            if not any(touching) or "panda_link0" in names:
-                continue
-            if not any(np.linalg.norm(point.impulse) > 0 for point in contact.points):
-                continue
-            other = names[1] if touching[0] else names[0]
-            kinds.add("self" if all(touching) else "table" if "table" in other else "object")
+    def _robot_contact_pairs(self) -> tuple[list[tuple], list[tuple[int, str]], dict[frozenset, int]]:
+        """The body pairs ``robot_contact_kinds`` watches, per sub-scene: every robot link but the base
+        against the table, each object and every other such link; with each pair's ``(sub-scene,
+        kind)`` and an index from the pair (as a set) to its position. Built once per scene."""
+        if self._contact_pairs is None:
+            links = [link for link in self.agent.robot.get_links() if link.name != "panda_link0"]
+            pairs: list[tuple] = []
+            labels: list[tuple[int, str]] = []
+            for i in range(self.num_envs):
+                bodies = [link._bodies[i] for link in links]
+                others = [(self.table_scene.table._bodies[i], "table")]
+                others += [(obj._bodies[0], "object") for obj in self.objects[i]]
+                for a, body in enumerate(bodies):
+                    pairs += [(body, other) for other, _ in others] + [(body, b) for b in bodies[a + 1:]]
+                    labels += [(i, kind) for _, kind in others] + [(i, "self")] * (len(bodies) - a - 1)
+            index = {frozenset(pair): n for n, pair in enumerate(pairs)}
+            self._contact_pairs = (pairs, labels, index)
+        return self._contact_pairs
+
+    def robot_contact_kinds(self) -> list[set[str]]:
+        """What the robot touches now, per sub-scene: a subset of ``{"table", "object", "self"}``
+        ("self": one robot link against another; the base, ``panda_link0``, is left out as in
+        ``robot_in_collision``). Read it at a step where ``robot_in_collision`` holds, to say what the
+        contact was. CPU: one pass over the contact list; GPU: one contact-pair impulse query."""
+        pairs, labels, index = self._robot_contact_pairs()
+        if self.scene.gpu_sim_enabled:
+            if self._contact_query is None:
+                self._contact_query = self.scene.px.gpu_create_contact_pair_impulse_query(pairs)
+            self.scene.px.gpu_query_contact_pair_impulses(self._contact_query)
+            touching = (self._contact_query.cuda_impulses.torch().norm(dim=-1) > 0).cpu().tolist()
+        else:
+            touching = [False] * len(pairs)
+            for contact in self.scene.px.get_contacts():
+                n = index.get(frozenset(contact.bodies))
+                if n is not None and any(np.linalg.norm(point.impulse) > 0 for point in contact.points):
+                    touching[n] = True
+        kinds: list[set[str]] = [set() for _ in range(self.num_envs)]
+        for (i, kind), hit in zip(labels, touching):
+            if hit:
+                kinds[i].add(kind)
         return kinds
 
     def evaluate(self) -> dict:
