@@ -247,10 +247,13 @@ def surface_distance(observation: dict[str, Any], table_height: float | None = N
     z = ``table_height``) where that is nearer; inf without either."""
     state = torch.as_tensor(observation[features.STATE])
     ee = (state[None] if state.ndim == 1 else state)[:, features.EE_POS].double()
+    dist = _cloud_distance(observation, ee)
+    return dist if table_height is None else torch.minimum(dist, ee[:, 2] - table_height)
+
+
+def _cloud_distance(observation: dict[str, Any], ee: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` distance from ``ee (B, 3)`` to the nearest valid cloud point; inf without one."""
     b = ee.shape[0]
-    if table_height is not None:
-        above_table = ee[:, 2] - table_height
-        return torch.minimum(surface_distance(observation), above_table)
     if features.POINT_CLOUD not in observation:
         return torch.full((b,), math.inf, dtype=torch.float64)
     cloud = features.unflatten(features.POINT_CLOUD, torch.as_tensor(observation[features.POINT_CLOUD]))
