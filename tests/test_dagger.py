@@ -9,7 +9,13 @@ import pytest
 
 from rtv3_maniskill import features
 from rtv3_maniskill.datasets.lerobot_export import state_histories
-from rtv3_maniskill.experiments.dagger import DaggerConfig, Rollout, parse_driver, relabel_steps
+from rtv3_maniskill.experiments.dagger import (
+    FAILURE_WINDOW_STEPS,
+    DaggerConfig,
+    Rollout,
+    parse_driver,
+    relabel_steps,
+)
 
 
 def test_state_histories_hold_the_prefix_before_the_first_frame():
@@ -35,6 +41,17 @@ def test_relabel_steps_spread_over_the_rollout_and_skip_the_contact_state():
     assert steps[0] <= 21 and steps[-1] >= 40 and max(steps) <= 59  # one per third; step 60 touched something
     short = Rollout(np.zeros((3, 27)), np.zeros((3, 7)), "success", steps=2)
     assert relabel_steps(short, 3, 2, np.random.default_rng(0)) == [2]
+
+
+def test_failure_relabels_come_from_the_last_second_of_a_failed_rollout():
+    failed = Rollout(np.zeros((101, 27)), np.zeros((101, 7)), "collision", steps=100)
+    steps = relabel_steps(failed, 1, 2, np.random.default_rng(0), failure_count=5)
+    assert len(steps) == 5 and len(set(steps)) == 5
+    assert min(steps) >= 99 - FAILURE_WINDOW_STEPS + 1 and max(steps) <= 99  # before the contact state
+    timeout = Rollout(np.zeros((151, 27)), np.zeros((151, 7)), "timeout", steps=150)
+    assert min(relabel_steps(timeout, 1, 2, np.random.default_rng(0), failure_count=5)) > 150 - FAILURE_WINDOW_STEPS
+    success = Rollout(np.zeros((101, 27)), np.zeros((101, 7)), "success", steps=100)
+    assert len(relabel_steps(success, 1, 2, np.random.default_rng(0), failure_count=5)) == 1
 
 
 def test_unknown_driver_names_the_known_ones(tmp_path):

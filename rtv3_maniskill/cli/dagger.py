@@ -23,6 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma list: 'prior' and METHOD:USER with METHOD direct or rtv3")
     parser.add_argument("--targets-per-scene", type=int, default=4, help="targets per scene (0 = all)")
     parser.add_argument("--relabels-per-rollout", type=int, default=3, help="visited states re-planned per rollout")
+    parser.add_argument("--failure-relabels", type=int, default=0,
+                        help="states re-planned from the last 20 steps of a failed rollout instead "
+                             "(0: spread like the others)")
     parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
     parser.add_argument("--objects", default="procedural")
     parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")
@@ -39,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
             output=args.output, policy_path=args.policy_path, scenes=args.num_scenes, seed=args.seed,
             drivers=tuple(d for d in args.drivers.split(",") if d.strip()),
             targets_per_scene=args.targets_per_scene or None, relabels_per_rollout=args.relabels_per_rollout,
+            failure_relabels=args.failure_relabels,
             scene_type=args.scene_type, objects=args.objects, plan_timeout=args.plan_timeout, workers=args.workers)
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None

@@ -46,6 +46,8 @@ DEFAULT_DRIVERS = ("prior", "rtv3:noisy", "direct:noisy", "rtv3:laggy", "rtv3:mo
 """The prior alone, and simulated users through RT-V3 (what the shared-control prior must read) and Direct."""
 DAGGER_SALT = 13
 """``select_targets`` salt of DAgger runs (targets drawn independently of generation and benchmarks)."""
+FAILURE_WINDOW_STEPS = 20
+"""A failed rollout's ``failure_relabels`` come from its last 20 steps (1 s at 20 Hz)."""
 
 
 def parse_driver(spec: str) -> tuple[str, str | None]:
@@ -78,6 +80,9 @@ class DaggerConfig:
             ``(i * targets_per_scene + j) mod len(drivers)``.
         targets_per_scene: seeded subset of each scene's grasp candidates (None = all).
         relabels_per_rollout: visited states re-planned per rollout (seeded, spread over the rollout).
+        failure_relabels: 0, or the number of states re-planned from a failed rollout (contact or
+            timeout) instead of ``relabels_per_rollout``, all from its last
+            :data:`FAILURE_WINDOW_STEPS` steps: where it went wrong, the recovery the expert shows.
         min_step: earliest rollout step that is relabelled (step 0 is the start demonstrations cover).
         max_steps: rollout length limit (the benchmarks' 150).
         plan_timeout: seconds per OMPL query.
@@ -90,6 +95,7 @@ class DaggerConfig:
     drivers: tuple[str, ...] = DEFAULT_DRIVERS
     targets_per_scene: int | None = 4
     relabels_per_rollout: int = 3
+    failure_relabels: int = 0
     min_step: int = 2
     max_steps: int = 150
     plan_timeout: float = 3.0
@@ -109,6 +115,8 @@ class DaggerConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.targets_per_scene is not None and self.targets_per_scene < 1:
             raise ValueError(f"targets_per_scene must be >= 1 or None, got {self.targets_per_scene}")
+        if self.failure_relabels < 0:
+            raise ValueError(f"failure_relabels must be >= 0, got {self.failure_relabels}")
         if self.min_step < 1:
             raise ValueError(f"min_step must be >= 1, got {self.min_step}")
 
@@ -117,7 +125,8 @@ class DaggerConfig:
         return dict(format="rtv3-grasp-clutter-v1", source="dagger", seed=self.seed, scene_type=self.scene_type,
                     objects=self.objects, num_points=num_points, max_grasps=max_grasps, context="rendered",
                     end_at="pregrasp", drivers=list(self.drivers), targets_per_scene=self.targets_per_scene,
-                    relabels_per_rollout=self.relabels_per_rollout, min_step=self.min_step,
+                    relabels_per_rollout=self.relabels_per_rollout, failure_relabels=self.failure_relabels,
+                    min_step=self.min_step,
                     max_steps=self.max_steps, policy=str(self.policy_path or "shipped"))
 
 
@@ -135,11 +144,16 @@ class Rollout:
     info: dict = field(default_factory=dict)
 
 
-def relabel_steps(rollout: Rollout, count: int, min_step: int, rng: np.random.Generator) -> list[int]:
+def relabel_steps(rollout: Rollout, count: int, min_step: int, rng: np.random.Generator,
+                  failure_count: int = 0) -> list[int]:
     """Visited steps to re-plan from: ``count`` of ``min_step .. S`` (the state after a contact
-    excluded), drawn one per equal stretch of the rollout so they spread over it; sorted."""
+    excluded), drawn one per equal stretch of the rollout so they spread over it; sorted.
+    With ``failure_count`` > 0, a failed rollout gets that many instead, spread over its last
+    :data:`FAILURE_WINDOW_STEPS` steps."""
     last = rollout.steps - (1 if rollout.outcome == "collision" else 0)
     candidates = np.arange(min_step, last + 1)
+    if failure_count > 0 and rollout.outcome != "success":
+        candidates, count = candidates[-FAILURE_WINDOW_STEPS:], failure_count
     if len(candidates) == 0:
         return []
     if len(candidates) <= count:
@@ -303,7 +317,8 @@ def _run_scene(job: tuple[int, int, list[str]]) -> dict[str, Any]:
         rollout = collector.rollout(grasp, config.drivers[d], seed)
         counts[f"rollout_{rollout.outcome}"] += 1
         rng = np.random.default_rng([config.seed, scene_seed, grasp, d])
-        for step in relabel_steps(rollout, config.relabels_per_rollout, config.min_step, rng):
+        for step in relabel_steps(rollout, config.relabels_per_rollout, config.min_step, rng,
+                                  config.failure_relabels):
             variant = rollout_variant(d, step)
             if StagingArea.key(scene_seed, grasp, variant) in done_keys:
                 continue
