@@ -5,4 +5,9 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh --dev
 .venv/bin/ruff check .
 export PYTHONWARNINGS="${PYTHONWARNINGS:-ignore::DeprecationWarning}"
+# LeRobot reads datasets through Hugging Face `datasets`, which keeps a converted copy of each one
+# it loads; the tests' throw-away datasets get a throw-away cache instead of the user's.
+HF_DATASETS_CACHE="$(mktemp -d)"
+export HF_DATASETS_CACHE
+trap 'rm -rf "$HF_DATASETS_CACHE"' EXIT
 .venv/bin/python -m pytest -q -p no:cacheprovider "$@"

@@ -31,7 +31,13 @@
 #      demonstrations (scenes 300000..300399); one fine-tune at 3e-4 with history rotation resampling,
 #      2,000 steps, checkpoints every 500 (CKPT_STEP: step 2000, picked among four on 120 validation
 #      planning trials, scenes 800000..800059);
-#   9. the chosen checkpoint is copied into the package.
+#   9. that prior (step 2000 of step 8, the previous shipped prior) rolls out in a DAgger round aimed at
+#      its failures (scenes 1000000..1000199: the prior alone twice, and the single-DoF and noisy users
+#      through RT-V3): one re-planned state per successful rollout, six from the last second of a
+#      failed one (--failure-relabels 6); merged with step 8's data, one fine-tune whose learning rate
+#      anneals (3e-4 x 0.997 per step, floor 1e-5), 1,000 steps; its last checkpoint is the prior
+#      (no pick: its step-500 checkpoint agreed within a trial per validation block);
+#  10. the chosen checkpoint is copied into the package.
 # Every step is resumable or skipped when its output exists. Environment: STEPS, BATCH, SAVE_FREQ,
 # CKPT_STEP, GEN_SCENES, DAGGER_SCENES trade time for quality.
 set -euo pipefail
@@ -106,7 +112,16 @@ previous=outputs/train_v3_long/checkpoints/001000/pretrained_model
   .venv/bin/python scripts/merge_datasets.py data/train_s3 data/dagger_s3 --output data/train_s3_dagger
 fine_tune "$previous" data/train_s3_dagger outputs/train_s3 2000 500 "${resampled[@]}"
 
-ckpt=outputs/train_s3/checkpoints/$CKPT_STEP/pretrained_model
+previous=outputs/train_s3/checkpoints/$CKPT_STEP/pretrained_model
+.venv/bin/rtv3 dagger --policy.path "$previous" --output data/dagger_f10 --num-scenes 200 --seed 10 \
+    --drivers prior,rtv3:single_dof,prior,rtv3:noisy --targets-per-scene 8 --relabels-per-rollout 1 \
+    --failure-relabels 6 --workers 2
+[[ -f data/train_f10/meta/info.json ]] || \
+  .venv/bin/python scripts/merge_datasets.py data/train_s3_dagger data/dagger_f10 --output data/train_f10
+fine_tune "$previous" data/train_f10 outputs/train_f10_anneal 1000 500 "${resampled[@]}" \
+    --policy.optimizer_lr_decay=0.997 --policy.optimizer_min_lr=0.00001
+
+ckpt=outputs/train_f10_anneal/checkpoints/001000/pretrained_model
 card=$(mktemp)
 cp rtv3_maniskill/checkpoints/rtv3_grasp_clutter/README.md "$card"  # the model card states the measured numbers
 rm -rf rtv3_maniskill/checkpoints/rtv3_grasp_clutter
