@@ -31,7 +31,7 @@
 #      demonstrations (scenes 300000..300399); one fine-tune at 3e-4 with history rotation resampling,
 #      2,000 steps, checkpoints every 500 (CKPT_STEP: step 2000, picked among four on 120 validation
 #      planning trials, scenes 800000..800059);
-#   9. that prior (step 2000 of step 8, the previous shipped prior) rolls out in a DAgger round aimed at
+#   9. that prior (step 2000 of step 8, the round-4 prior) rolls out in a DAgger round aimed at
 #      its failures (scenes 1000000..1000199: the prior alone twice, and the single-DoF and noisy users
 #      through RT-V3): one re-planned state per successful rollout, six from the last second of a
 #      failed one (--failure-relabels 6); merged with step 8's data, one fine-tune whose learning rate
