@@ -11,7 +11,7 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from rtv3_maniskill.experiments.dagger import DEFAULT_DRIVERS
+    from rtv3_maniskill.experiments.dagger import DEFAULT_DRIVERS, FAILURE_WINDOW_STEPS
 
     parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
                         help="checkpoint whose closed loop is rolled out (default: the shipped one)")
@@ -24,8 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--targets-per-scene", type=int, default=4, help="targets per scene (0 = all)")
     parser.add_argument("--relabels-per-rollout", type=int, default=3, help="visited states re-planned per rollout")
     parser.add_argument("--failure-relabels", type=int, default=0,
-                        help="states re-planned from the last 20 steps of a failed rollout instead "
-                             "(0: spread like the others)")
+                        help=f"states re-planned from the last {FAILURE_WINDOW_STEPS} steps of a failed rollout "
+                             "instead (0: spread like the others)")
     parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
     parser.add_argument("--objects", default="procedural")
     parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")

@@ -126,8 +126,7 @@ class DaggerConfig:
                     objects=self.objects, num_points=num_points, max_grasps=max_grasps, context="rendered",
                     end_at="pregrasp", drivers=list(self.drivers), targets_per_scene=self.targets_per_scene,
                     relabels_per_rollout=self.relabels_per_rollout, failure_relabels=self.failure_relabels,
-                    min_step=self.min_step,
-                    max_steps=self.max_steps, policy=str(self.policy_path or "shipped"))
+                    min_step=self.min_step, max_steps=self.max_steps, policy=str(self.policy_path or "shipped"))
 
 
 @dataclass
