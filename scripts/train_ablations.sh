@@ -18,6 +18,7 @@ DATA=${DATA:-data/train}
 OUT=${OUT:-outputs/ablations}
 STEM=${STEM:-0}
 bash scripts/setup.sh
+source scripts/datasets_cache.sh
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 mkdir -p "$OUT"
 declare -A ROWS=(

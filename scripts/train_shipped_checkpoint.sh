@@ -51,6 +51,7 @@ DAGGER_SCENES=${DAGGER_SCENES:-150}
 START_COMMIT=3da66a5
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 bash scripts/setup.sh
+source scripts/datasets_cache.sh
 mkdir -p data outputs
 
 init=outputs/checkpoint_$START_COMMIT
