@@ -37,7 +37,12 @@
 #      failed one (--failure-relabels 6); merged with step 8's data, one fine-tune whose learning rate
 #      anneals (3e-4 x 0.997 per step, floor 1e-5), 1,000 steps; its last checkpoint is the prior
 #      (no pick: its step-500 checkpoint agreed within a trial per validation block);
-#  10. the chosen checkpoint is copied into the package.
+#  10. that prior (the round-5 prior) rolls out in two more DAgger rounds of the same kind (scenes
+#      1100000..1100199: the prior alone twice, the single-DoF and noisy users through RT-V3; scenes
+#      1200000..1200199: the single-DoF user twice and the low-DoF user through RT-V3, the prior
+#      alone); both merged with step 9's data, one annealed fine-tune of 1,500 steps; its last
+#      checkpoint is the prior (no pick);
+#  11. the chosen checkpoint is copied into the package.
 # Every step is resumable or skipped when its output exists. Environment: STEPS, BATCH, SAVE_FREQ,
 # CKPT_STEP, GEN_SCENES, DAGGER_SCENES trade time for quality.
 set -euo pipefail
@@ -119,10 +124,21 @@ previous=outputs/train_s3/checkpoints/$CKPT_STEP/pretrained_model
     --failure-relabels 6 --workers 2
 [[ -f data/train_f10/meta/info.json ]] || \
   .venv/bin/python scripts/merge_datasets.py data/train_s3_dagger data/dagger_f10 --output data/train_f10
-fine_tune "$previous" data/train_f10 outputs/train_f10_anneal 1000 500 "${resampled[@]}" \
-    --policy.optimizer_lr_decay=0.997 --policy.optimizer_min_lr=0.00001
+annealed=(--policy.optimizer_lr_decay=0.997 --policy.optimizer_min_lr=0.00001)
+fine_tune "$previous" data/train_f10 outputs/train_f10_anneal 1000 500 "${resampled[@]}" "${annealed[@]}"
 
-ckpt=outputs/train_f10_anneal/checkpoints/001000/pretrained_model
+previous=outputs/train_f10_anneal/checkpoints/001000/pretrained_model
+.venv/bin/rtv3 dagger --policy.path "$previous" --output data/dagger_f11 --num-scenes 200 --seed 11 \
+    --drivers prior,rtv3:single_dof,prior,rtv3:noisy --targets-per-scene 8 --relabels-per-rollout 1 \
+    --failure-relabels 6 --workers 2
+.venv/bin/rtv3 dagger --policy.path "$previous" --output data/dagger_f12 --num-scenes 200 --seed 12 \
+    --drivers rtv3:single_dof,rtv3:low_dof,rtv3:single_dof,prior --targets-per-scene 8 --relabels-per-rollout 1 \
+    --failure-relabels 6 --workers 2
+[[ -f data/train_f13/meta/info.json ]] || \
+  .venv/bin/python scripts/merge_datasets.py data/train_f10 data/dagger_f11 data/dagger_f12 --output data/train_f13
+fine_tune "$previous" data/train_f13 outputs/train_f13_anneal 1500 500 "${resampled[@]}" "${annealed[@]}"
+
+ckpt=outputs/train_f13_anneal/checkpoints/001500/pretrained_model
 card=$(mktemp)
 cp rtv3_maniskill/checkpoints/rtv3_grasp_clutter/README.md "$card"  # the model card states the measured numbers
 rm -rf rtv3_maniskill/checkpoints/rtv3_grasp_clutter
