@@ -118,22 +118,23 @@ previous=outputs/train_v3_long/checkpoints/001000/pretrained_model
   .venv/bin/python scripts/merge_datasets.py data/train_s3 data/dagger_s3 --output data/train_s3_dagger
 fine_tune "$previous" data/train_s3_dagger outputs/train_s3 2000 500 "${resampled[@]}"
 
+# A DAgger round of $previous aimed at its failures (steps 9 and 10): 200 scenes, 8 targets each, one
+# re-planned state per successful rollout and six from the last second of a failed one.
+failure_round() {  # OUTPUT SEED DRIVERS
+  .venv/bin/rtv3 dagger --policy.path "$previous" --output "$1" --num-scenes 200 --seed "$2" --drivers "$3" \
+      --targets-per-scene 8 --relabels-per-rollout 1 --failure-relabels 6 --workers 2
+}
+
 previous=outputs/train_s3/checkpoints/$CKPT_STEP/pretrained_model
-.venv/bin/rtv3 dagger --policy.path "$previous" --output data/dagger_f10 --num-scenes 200 --seed 10 \
-    --drivers prior,rtv3:single_dof,prior,rtv3:noisy --targets-per-scene 8 --relabels-per-rollout 1 \
-    --failure-relabels 6 --workers 2
+failure_round data/dagger_f10 10 prior,rtv3:single_dof,prior,rtv3:noisy
 [[ -f data/train_f10/meta/info.json ]] || \
   .venv/bin/python scripts/merge_datasets.py data/train_s3_dagger data/dagger_f10 --output data/train_f10
 annealed=(--policy.optimizer_lr_decay=0.997 --policy.optimizer_min_lr=0.00001)
 fine_tune "$previous" data/train_f10 outputs/train_f10_anneal 1000 500 "${resampled[@]}" "${annealed[@]}"
 
 previous=outputs/train_f10_anneal/checkpoints/001000/pretrained_model
-.venv/bin/rtv3 dagger --policy.path "$previous" --output data/dagger_f11 --num-scenes 200 --seed 11 \
-    --drivers prior,rtv3:single_dof,prior,rtv3:noisy --targets-per-scene 8 --relabels-per-rollout 1 \
-    --failure-relabels 6 --workers 2
-.venv/bin/rtv3 dagger --policy.path "$previous" --output data/dagger_f12 --num-scenes 200 --seed 12 \
-    --drivers rtv3:single_dof,rtv3:low_dof,rtv3:single_dof,prior --targets-per-scene 8 --relabels-per-rollout 1 \
-    --failure-relabels 6 --workers 2
+failure_round data/dagger_f11 11 prior,rtv3:single_dof,prior,rtv3:noisy
+failure_round data/dagger_f12 12 rtv3:single_dof,rtv3:low_dof,rtv3:single_dof,prior
 [[ -f data/train_f13/meta/info.json ]] || \
   .venv/bin/python scripts/merge_datasets.py data/train_f10 data/dagger_f11 data/dagger_f12 --output data/train_f13
 fine_tune "$previous" data/train_f13 outputs/train_f13_anneal 1500 500 "${resampled[@]}" "${annealed[@]}"
