@@ -11,6 +11,7 @@ scaling already undone).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -45,3 +46,16 @@ class TwistMixture:
     @property
     def num_classes(self) -> int:
         return self.log_weights.shape[-1]
+
+    def scaled(self, scale: float) -> TwistMixture:
+        """This mixture with every class covariance (translation ``Sigma_z``, rotation ``Gamma_z``)
+        times ``scale``; the means and weights are kept (``self`` when ``scale`` is 1)."""
+        if scale == 1.0:
+            return self
+        rotation = self.rotation_given_translation
+
+        def scaled_rotation(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            omega, gamma = rotation(v)
+            return omega, gamma * scale
+
+        return dataclasses.replace(self, trans_cov=self.trans_cov * scale, rotation_given_translation=scaled_rotation)

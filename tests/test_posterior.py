@@ -437,7 +437,7 @@ def make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.0),), batch:
         features.STATE: state,
         features.POINT_CLOUD: cloud,
         features.POINT_CLOUD_MASK: mask,
-        features.GRASPS: torch.zeros(4, features.GRASP_DIM),
+        features.GRASPS: torch.zeros(4, features.GRASP_DIM).index_fill(1, torch.tensor([3]), 1.0),  # identity quat
         features.GRASPS_MASK: gmask,
     }
     return {k: v.expand(batch, *v.shape).clone() for k, v in obs.items()}

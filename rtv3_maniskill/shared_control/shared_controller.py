@@ -40,6 +40,7 @@ import torch
 
 from rtv3_maniskill import features
 from rtv3_maniskill.shared_control import posterior
+from rtv3_maniskill.shared_control.goal_belief import GoalBelief
 from rtv3_maniskill.shared_control.twist_utils import check_speed_limits, clamp_twist_speed, step_inputs
 from rtv3_maniskill.twist_mixture import TwistMixture
 
@@ -117,6 +118,14 @@ class SharedControlConfig:
     under each class is accumulated over the shared steps, decayed by this factor per step, and
     added to the prior's log-weights, so consistent commands build up a belief in one class (1 =
     exact Bayes for a goal that does not change)."""
+    goal_belief_margin: float | None = 1.0
+    """Goal-tracking prior input (:mod:`~rtv3_maniskill.shared_control.goal_belief`). None (the paper):
+    the prior sees every grasp candidate at every step. A number of nats: the controller keeps a
+    recursive belief over the candidates from the user's commands (each a noisy straight twist to
+    its candidate's pre-grasp, on the command's observed axes; evidence decayed by ``belief_memory``)
+    and hands the prior only the candidates within this many nats of the most likely one. 1 was
+    chosen on validation goals (it lifts a translation-only user most: the prior then turns the
+    hand towards the grasp the user drives to)."""
     prior_covariance_scale: float = 100.0
     """Factor on the prior's step-0 covariances (Sigma_z and Gamma_z) before the gate and the
     fusion. 1 (the paper) takes the prior as calibrated; a learned prior is calibrated on its
@@ -166,15 +175,18 @@ class SharedControlConfig:
         posterior.ood_threshold(self.ood_alpha)  # validates alpha
         if not 0.0 <= self.belief_memory <= 1.0:
             raise ValueError(f"belief_memory must be in [0, 1], got {self.belief_memory}")
+        if self.goal_belief_margin is not None and not (math.isfinite(self.goal_belief_margin)
+                                                        and self.goal_belief_margin > 0):
+            raise ValueError(f"goal_belief_margin must be None or a finite number > 0, got {self.goal_belief_margin}")
         if not (math.isfinite(self.prior_covariance_scale) and self.prior_covariance_scale > 0):
             raise ValueError(f"prior_covariance_scale must be a finite number > 0, got {self.prior_covariance_scale}")
 
 
 FUSION_PRESETS: dict[str, dict[str, Any]] = {
     "tuned": dict(ood_covariance="predictive", ood_alpha=0.99, belief_memory=1.0, prior_covariance_scale=100.0,
-                  uncommanded_axes="missing_far_group"),
+                  uncommanded_axes="missing_far_group", goal_belief_margin=1.0),
     "paper": dict(ood_covariance="class", ood_alpha=0.85, belief_memory=0.0, prior_covariance_scale=1.0,
-                  uncommanded_axes="missing"),
+                  uncommanded_axes="missing", goal_belief_margin=None),
 }
 """Named fusion settings (:meth:`SharedControlConfig.preset`); ``"tuned"`` is the default."""
 
@@ -281,20 +293,6 @@ def most_likely_twist(prior: posterior.FactorizedTwistMixture) -> torch.Tensor:
     return prior.means[torch.arange(best.shape[0], device=best.device), best]
 
 
-def scale_covariances(mixture: TwistMixture, scale: float) -> TwistMixture:
-    """``mixture`` with every class covariance (translation ``Sigma_z``, rotation ``Gamma_z``) times
-    ``scale``; the means and weights are kept (the same mixture when ``scale`` is 1)."""
-    if scale == 1.0:
-        return mixture
-    rotation = mixture.rotation_given_translation
-
-    def scaled_rotation(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        omega, gamma = rotation(v)
-        return omega, gamma * scale
-
-    return dataclasses.replace(mixture, trans_cov=mixture.trans_cov * scale, rotation_given_translation=scaled_rotation)
-
-
 class SharedController:
     """RT-V3 shared control around a learned prior (see the module docstring for the modes).
 
@@ -321,7 +319,15 @@ class SharedController:
         self._user_cov: posterior.UserCovarianceEstimator | None = None
         self._evidence: torch.Tensor | None = None
         """``(B, K)`` accumulated log-likelihood of the user's commands per class (``belief_memory``)."""
+        self._goal_belief = self._make_goal_belief()
         self.last_diagnostics: SharedControlDiagnostics | None = None
+
+    def _make_goal_belief(self) -> GoalBelief | None:
+        c = self.config
+        if c.goal_belief_margin is None:
+            return None
+        return GoalBelief(c.goal_belief_margin, memory=c.belief_memory, floor=EVIDENCE_FLOOR,
+                          covariance_scale=c.prior_covariance_scale)
 
     def reset(self) -> None:
         """Start a new episode: reset the policy, the OOD window, the user covariance and the belief."""
@@ -331,6 +337,7 @@ class SharedController:
         self._commanded_axes = torch.zeros(0, 6, dtype=torch.bool)
         self._user_cov = None
         self._evidence = None
+        self._goal_belief = self._make_goal_belief()
         self.last_diagnostics = None
 
     def _with_belief(self, mixture: TwistMixture) -> TwistMixture:
@@ -418,23 +425,29 @@ class SharedController:
         weights = prior_weights = torch.zeros(b, 0, dtype=torch.float64)
         shown: posterior.FactorizedTwistMixture | None = None
 
+        # The command's axes that carry an observation (the others are missing: the prior fills them).
+        observed = commanded
+        if c.uncommanded_axes == "zero":
+            observed = torch.ones_like(commanded)
+        elif c.uncommanded_axes in ("missing_far", "missing_far_group"):  # near the scene, hold still
+            used = self._commanded_axes
+            if c.uncommanded_axes == "missing_far_group":  # a kind (v or w) used once: all its axes
+                used = used.view(b, 2, 3).any(-1, keepdim=True).expand(b, 2, 3).reshape(b, 6)
+            observed = observed | (used & (dist <= c.autonomy_cutoff_distance)[:, None])
+
         if not bool(no_grasps.all()):
-            mixture = self.policy.predict_step0_mixture(observation)
+            prior_observation = observation
+            if self._goal_belief is not None and features.GRASPS in observation and features.GRASPS_MASK in observation:
+                self._goal_belief.update(observation, user, active & ~no_grasps, observed, s_u, g_u)
+                prior_observation = {**observation, features.GRASPS_MASK: self._goal_belief.kept(
+                    torch.as_tensor(observation[features.GRASPS_MASK]))}
+            mixture = self.policy.predict_step0_mixture(prior_observation)
             if mixture.log_weights.shape[0] != b:
                 raise ValueError(f"policy returned a mixture of batch {mixture.log_weights.shape[0]}, expected {b}")
-            mixture = self._with_belief(scale_covariances(mixture, c.prior_covariance_scale))
+            mixture = self._with_belief(mixture.scaled(c.prior_covariance_scale))
             fused = None
             fired = torch.zeros(b, dtype=torch.bool)
             if (active & ~no_grasps).any():
-                observed = None
-                if c.uncommanded_axes != "zero":
-                    observed = commanded
-                    near = (dist <= c.autonomy_cutoff_distance)[:, None]
-                    used = self._commanded_axes
-                    if c.uncommanded_axes == "missing_far_group":  # a kind (v or w) used once: all its axes
-                        used = used.view(b, 2, 3).any(-1, keepdim=True).expand(b, 2, 3).reshape(b, 6)
-                    if c.uncommanded_axes in ("missing_far", "missing_far_group"):  # near the scene, hold still
-                        observed = observed | (used & near)
                 prior, fused = posterior.prior_and_fused_mixtures(
                     mixture, user, s_u, g_u, c.reweight_rotation_at, observed=observed)
                 fired = (active & posterior.is_out_of_distribution(fused, c.ood_alpha, c.ood_covariance, c.ood_dofs)
