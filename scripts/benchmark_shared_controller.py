@@ -1,6 +1,7 @@
 """Latency of one RT-V3 shared-control step on CPU, prior included (target <= 10 ms).
 
-Usage: ``python scripts/benchmark_shared_controller.py [--policy.path DIR] [--steps 200] [--repeats 3] [--threads 1]``
+Usage: ``python scripts/benchmark_shared_controller.py [--policy.path DIR] [--steps 200] [--repeats 3] [--threads 1]
+[--goal-belief-margin NATS|off]``
 
 Times :meth:`SharedController.step` (prior forward pass + posterior fusion + mode search) on real
 ``GraspClutter-v1`` observations, the checkpoint's N points and M grasps (N = 2048, M = 64
@@ -38,6 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--num-points", type=int, default=2048)
     parser.add_argument("--max-grasps", type=int, default=64)
     parser.add_argument("--seed", type=int, default=900000, help="scene seed")
+    parser.add_argument("--goal-belief-margin", default="1.0", metavar="NATS|off",
+                        help="the controller's goal belief over the grasp candidates (tuned: 1.0; off: none)")
     args = parser.parse_args(argv)
     if args.steps < 1 or args.threads < 1 or args.repeats < 1:
         parser.error("--steps, --repeats and --threads must be >= 1")
@@ -65,7 +68,8 @@ def main(argv: list[str] | None = None) -> int:
 
     env = SharedControlEnv(num_points=n, max_grasps=m)
     # The timed controller is driven directly (no wrapper method) so only step() is measured.
-    config = SharedControlConfig(max_linear_speed=0.3, max_angular_speed=1.2)
+    margin = None if args.goal_belief_margin.strip().lower() == "off" else float(args.goal_belief_margin)
+    config = SharedControlConfig(max_linear_speed=0.3, max_angular_speed=1.2, goal_belief_margin=margin)
     controller = SharedController(policy, config)
     # A mode-switching user who pauses (20 steps of commands, 10 of none) gives shared,
     # user-only (OOD window) and, away from the scene surface, autonomous steps; every step

@@ -705,5 +705,6 @@ def test_fusion_presets_tuned_is_the_default_and_paper_is_the_papers_reading():
     paper = SharedControlConfig.preset("paper", ood_steps=2)
     assert (paper.ood_covariance, paper.ood_alpha, paper.belief_memory, paper.ood_steps) == ("class", 0.85, 0.0, 2)
     assert paper.prior_covariance_scale == 1.0 and SharedControlConfig().prior_covariance_scale == 100.0
+    assert paper.goal_belief_margin is None and SharedControlConfig().goal_belief_margin == 1.0
     with pytest.raises(ValueError, match="unknown fusion preset"):
         SharedControlConfig.preset("bold")

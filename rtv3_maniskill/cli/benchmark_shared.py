@@ -74,6 +74,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prior-covariance-scale", type=float, default=None,
                         help="factor on the prior's step-0 covariances before the gate and the fusion (tuned 100, "
                              "paper 1); larger gives the user's command more weight against an overconfident prior")
+    parser.add_argument("--goal-belief-margin", type=_margin, default=None, metavar="NATS|off",
+                        help="RT-V3 hands its prior only the grasp candidates within NATS of the most likely goal "
+                             "under a recursive belief over the candidates (tuned 1); off: every candidate (paper)")
     parser.add_argument("--safety-filter", choices=["neoss"], default=None,
                         help="put the NEO collision damper in front of every method (the paper's 'w. NeoSS' rows; "
                              "results are named METHOD+neoss)")
@@ -81,6 +84,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--merge", type=Path, nargs="+", metavar="DIR", default=None,
                         help="run nothing: combine finished runs of disjoint users or methods (e.g. one process per "
                              "method) into --output, which must be new")
+
+
+def _margin(text: str) -> float | str:
+    """``--goal-belief-margin``: a positive number of nats, or ``off``."""
+    if text.strip().lower() == "off":
+        return "off"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of nats or 'off', got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"the margin must be > 0 nats (or 'off'), got {text!r}")
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
@@ -111,8 +127,9 @@ def run(args: argparse.Namespace) -> int:
             obs_mode=args.obs_mode, rendered_context=not args.mesh_context, scene_type=args.scene_type,
             object_source=getattr(args, "objects", "procedural"),
             ho_variant=args.ho_variant, fusion=args.fusion, shared_control={
-                key: value for key in ("ood_alpha", "ood_covariance", "ood_dofs", "uncommanded_axes",
-                                                  "prior_covariance_scale")
+                key: (None if value == "off" else value)
+                for key in ("ood_alpha", "ood_covariance", "ood_dofs", "uncommanded_axes", "prior_covariance_scale",
+                            "goal_belief_margin")
                 if (value := getattr(args, key, None)) is not None
             },
         )
