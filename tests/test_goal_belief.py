@@ -119,3 +119,27 @@ def test_bad_settings_are_named():
         belief.update({features.STATE: torch.zeros(1, features.STATE_DIM)}, torch.zeros(1, 6),
                       torch.ones(1, dtype=torch.bool), torch.ones(1, 6, dtype=torch.bool),
                       torch.eye(3)[None], torch.eye(3)[None])
+
+
+def test_benchmark_shared_turns_the_goal_belief_off_or_sets_its_margin(tmp_path):
+    import argparse
+
+    from rtv3_maniskill.cli.benchmark_shared import add_arguments, shared_control_overrides
+    from rtv3_maniskill.experiments.shared_benchmark import BenchmarkConfig
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+
+    def margin(*argv: str) -> float | None:
+        args = parser.parse_args(list(argv))
+        config = BenchmarkConfig(output=tmp_path, methods=["rtv3"], users=["noisy"], fusion=args.fusion,
+                                 shared_control=shared_control_overrides(args))
+        return config.shared_control_config(0.3, 1.2).goal_belief_margin
+
+    assert margin() == 1.0  # tuned
+    assert margin("--goal-belief-margin", "off") is None
+    assert margin("--goal-belief-margin", "2.5") == 2.5
+    assert margin("--fusion", "paper") is None
+    for bad in ("0", "-1", "many"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["--goal-belief-margin", bad])

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 
 def _names(text: str) -> list[str]:
@@ -99,6 +100,16 @@ def _margin(text: str) -> float | str:
     return value
 
 
+def shared_control_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """The ``SharedControlConfig`` fields the command line sets (``off`` -> None), the others left to the preset."""
+    return {
+        key: (None if value == "off" else value)
+        for key in ("ood_alpha", "ood_covariance", "ood_dofs", "uncommanded_axes", "prior_covariance_scale",
+                    "goal_belief_margin")
+        if (value := getattr(args, key, None)) is not None
+    }
+
+
 def run(args: argparse.Namespace) -> int:
     from rtv3_maniskill.experiments.shared_benchmark import (
         BenchmarkConfig,
@@ -126,12 +137,7 @@ def run(args: argparse.Namespace) -> int:
             stop_on_contact=not args.continue_after_contact, safety_filter=args.safety_filter,
             obs_mode=args.obs_mode, rendered_context=not args.mesh_context, scene_type=args.scene_type,
             object_source=getattr(args, "objects", "procedural"),
-            ho_variant=args.ho_variant, fusion=args.fusion, shared_control={
-                key: (None if value == "off" else value)
-                for key in ("ood_alpha", "ood_covariance", "ood_dofs", "uncommanded_axes", "prior_covariance_scale",
-                            "goal_belief_margin")
-                if (value := getattr(args, key, None)) is not None
-            },
+            ho_variant=args.ho_variant, fusion=args.fusion, shared_control=shared_control_overrides(args),
         )
         summary = run_benchmark(config, progress=not args.no_progress)
     except (BenchmarkError, FileNotFoundError) as err:
