@@ -1,11 +1,12 @@
 """``rtv3 demo``: the main job. RT-V3 shared control of a simulated user in one clutter scene.
 
 Loads the RT-V3 checkpoint, draws one ``GraspClutter-v1`` scene (``--seed``) and lets a simulated
-user (``--user``, default ``noisy``) drive towards the episode's target pre-grasp with RT-V3
-assistance for up to 150 steps (7.5 s at 20 Hz). Writes ``OUTPUT/demo.mp4`` (the run, rendered;
-skipped with a note when no Vulkan device can render) and ``OUTPUT/demo.png`` (class weights and
-entropy bounds over time, autonomous phases shaded, distance to the goal), then repeats the run
-with direct teleoperation by the same user (same noise) and prints both outcomes.
+user (``--user``, default ``mode_switching``, pausing 10 steps after every 20) drive towards the
+episode's target pre-grasp with RT-V3 assistance for up to 150 steps (7.5 s at 20 Hz). Writes
+``OUTPUT/demo.mp4`` (the run, rendered; skipped with a note when no Vulkan device can render) and
+``OUTPUT/demo.png`` (class weights and entropy bounds over time, autonomous phases shaded, distance
+to the goal), then repeats the run with direct teleoperation by the same user (same noise) and
+prints both outcomes.
 """
 
 from __future__ import annotations
