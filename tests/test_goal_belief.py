@@ -104,6 +104,9 @@ def test_the_controller_hands_its_prior_the_candidates_the_belief_keeps(margin):
     torch.testing.assert_close(prior.masks[0], full)  # the first command cannot rule anything out yet
     expected = full if margin is None else torch.tensor([[1.0, 0.0, 0.0, 0.0, 0.0]])
     torch.testing.assert_close(prior.masks[-1], expected)
+    shown = ctrl.describe(0)  # what the teleoperation panel shows
+    assert shown["shown_grasps"].tolist() == ([0, 1, 2] if margin is None else [0])
+    assert shown["grasp_candidates"] == 3
     ctrl.reset()
     ctrl.step(observation_at(START), torch.zeros(1, 6))  # a new episode starts from every candidate again
     torch.testing.assert_close(prior.masks[-1], full)

@@ -91,6 +91,11 @@ class TeleopDisplay:
             self.pygame.draw.rect(self.screen, (90, 160, 240), (x + 70, y + 3, int(260 * weights[k]), 12))
             self._text(f"{int(k):3d}  {weights[k]:.2f}", (x, y))
             y += 18
+        if "shown_grasps" in diagnostics:  # RT-V3's belief over the grasp candidates
+            shown = [int(i) for i in diagnostics["shown_grasps"]]
+            listed = ", ".join(map(str, shown[:6])) + (" ..." if len(shown) > 6 else "")
+            self._text(f"prior aims at {len(shown)} of {diagnostics['grasp_candidates']} grasps: {listed}", (x, y + 4))
+            y += 22
         if "trans_entropy_upper" in diagnostics:
             y += 4
             self._text(f"entropy trans {diagnostics['trans_entropy_upper']:.2f}  "

@@ -204,6 +204,8 @@ class SharedControlDiagnostics:
         surface_distance: ``(B,)`` EE distance to the nearest valid scene point (m; inf if none).
         user_trans_cov, user_rot_cov: ``(B, 3, 3)`` S_u and G_u used this step.
         fallback: ``(B,)`` bool, the empty-grasp-set fallback was used.
+        shown_grasps: ``(B, M)`` bool, the candidates the prior was shown (see the field);
+            grasp_candidates ``(B,)`` their number before the goal belief.
         mixture: the step-0 mixture behind ``class_weights`` (fused where shared, the prior's
             elsewhere); None when the policy was not called.
 
@@ -221,6 +223,11 @@ class SharedControlDiagnostics:
     user_rot_cov: torch.Tensor
     fallback: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
     mixture: posterior.FactorizedTwistMixture | None = None
+    shown_grasps: torch.Tensor | None = None
+    """``(B, M)`` bool, the grasp candidates the prior was shown (``goal_belief_margin``; None
+    without grasp candidates in the observation)."""
+    grasp_candidates: torch.Tensor | None = None
+    """``(B,)`` the number of grasp candidates in the observation (None without any)."""
 
     @property
     def mode(self) -> str:
@@ -424,6 +431,10 @@ class SharedController:
         ood = in_window.clone()
         weights = prior_weights = torch.zeros(b, 0, dtype=torch.float64)
         shown: posterior.FactorizedTwistMixture | None = None
+        shown_grasps = candidates = None
+        if features.GRASPS_MASK in observation:
+            shown_grasps = torch.as_tensor(observation[features.GRASPS_MASK]).reshape(b, -1) > 0.5
+            candidates = shown_grasps.sum(-1)
 
         # The command's axes that carry an observation (the others are missing: the prior fills them).
         observed = commanded
@@ -441,6 +452,7 @@ class SharedController:
                 self._goal_belief.update(observation, user, active & ~no_grasps, observed, s_u, g_u)
                 prior_observation = {**observation, features.GRASPS_MASK: self._goal_belief.kept(
                     torch.as_tensor(observation[features.GRASPS_MASK]))}
+                shown_grasps = torch.as_tensor(prior_observation[features.GRASPS_MASK]).reshape(b, -1) > 0.5
             mixture = self.policy.predict_step0_mixture(prior_observation)
             if mixture.log_weights.shape[0] != b:
                 raise ValueError(f"policy returned a mixture of batch {mixture.log_weights.shape[0]}, expected {b}")
@@ -501,16 +513,23 @@ class SharedController:
             user_rot_cov=g_u,
             fallback=no_grasps,
             mixture=shown,
+            shown_grasps=shown_grasps,
+            grasp_candidates=candidates,
         )
         return action.float()
 
     def describe(self, index: int = 0) -> dict[str, Any]:
         """The last step of batch element ``index``: mode, class weights (posterior where shared,
-        the prior's otherwise), the prior's weights, entropy bounds, OOD flag, surface distance."""
+        the prior's otherwise), the prior's weights, entropy bounds, OOD flag, surface distance and,
+        with grasp candidates, the indices of those the prior was shown and their number in all."""
         d = self.last_diagnostics
         if d is None:
             return {"mode": ""}
-        return {
+        extra = {}
+        if d.shown_grasps is not None and d.grasp_candidates is not None:
+            extra = {"shown_grasps": torch.nonzero(d.shown_grasps[index]).flatten().numpy(),
+                     "grasp_candidates": int(d.grasp_candidates[index])}
+        return {**extra,
             "mode": d.modes[index],
             "class_weights": d.class_weights[index].numpy().copy(),
             "prior_class_weights": d.prior_class_weights[index].numpy().copy(),
