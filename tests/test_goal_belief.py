@@ -64,16 +64,17 @@ def test_consistent_commands_leave_only_their_goal_and_padding_stays_out():
 
 
 def test_only_the_observed_axes_count():
-    """A command along y alone (the candidates differ only along x) rules nothing out; the same
-    command with x observed as zero (hold still) points to the middle candidate."""
+    """A command straight down alone (every candidate, and its twin turned about that axis, lies as
+    far down) rules nothing out; the same command with x and y observed as zero (hold still) points
+    to the middle candidate, the one straight below."""
     belief = GoalBelief(margin=1.0, covariance_scale=1.0)
-    command = torch.tensor([[0.0, 0.2, 0.0, 0.0, 0.0, 0.0]], dtype=F64)
-    only_y = torch.tensor([[False, True, False, False, False, False]])
+    command = torch.tensor([[0.0, 0.0, 0.12, 0.0, 0.0, 0.0]], dtype=F64)  # body z points down
+    only_z = torch.tensor([[False, False, True, False, False, False]])
     for _ in range(10):
-        _update(belief, START, command, only_y)
+        _update(belief, START, command, only_z)
     torch.testing.assert_close(belief.evidence[0, :3], torch.zeros(3, dtype=F64))
     for _ in range(10):
-        _update(belief, START, command, only_y | torch.tensor([[True, False, False, False, False, False]]))
+        _update(belief, START, command, only_z | torch.tensor([[True, True, False, False, False, False]]))
     assert belief.kept(observation_at(START)[features.GRASPS_MASK]).tolist() == [[0.0, 1.0, 0.0, 0.0, 0.0]]
 
 
