@@ -25,6 +25,10 @@ Per step and batch element, one of three modes (``SharedControlDiagnostics.modes
   with no candidate grasps the prior has nothing to condition on, so the policy is not
   called and the user drives alone.
 
+In every mode that calls the prior, the prior is shown only the grasp candidates that a recursive
+belief over them, built from the user's commands, keeps (``goal_belief_margin``;
+:mod:`~rtv3_maniskill.shared_control.goal_belief`); the paper's prior sees them all.
+
 Every output is clamped to ``max_linear_speed`` / ``max_angular_speed`` (norms).
 """
 
@@ -525,11 +529,11 @@ class SharedController:
         d = self.last_diagnostics
         if d is None:
             return {"mode": ""}
-        extra = {}
+        grasps = {}
         if d.shown_grasps is not None and d.grasp_candidates is not None:
-            extra = {"shown_grasps": torch.nonzero(d.shown_grasps[index]).flatten().numpy(),
-                     "grasp_candidates": int(d.grasp_candidates[index])}
-        return {**extra,
+            grasps = {"shown_grasps": torch.nonzero(d.shown_grasps[index]).flatten().numpy(),
+                      "grasp_candidates": int(d.grasp_candidates[index])}
+        return {
             "mode": d.modes[index],
             "class_weights": d.class_weights[index].numpy().copy(),
             "prior_class_weights": d.prior_class_weights[index].numpy().copy(),
@@ -539,4 +543,5 @@ class SharedController:
             "rot_entropy_upper": float(d.rot_entropy_upper[index]),
             "ood": bool(d.ood[index]),
             "surface_distance": float(d.surface_distance[index]),
+            **grasps,
         }
