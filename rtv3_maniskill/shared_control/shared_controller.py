@@ -420,10 +420,12 @@ class SharedController:
         commanded = user.abs() > c.input_threshold  # (B, 6) the axes this command gives
 
         no_grasps = torch.zeros(b, dtype=torch.bool)
+        grasps_mask = shown_grasps = candidates = None  # the observation's mask as given; (B, M) bool; (B,)
         if features.GRASPS_MASK in observation:
-            gmask = torch.as_tensor(observation[features.GRASPS_MASK])
-            gmask = gmask[None] if gmask.ndim == 1 else gmask
-            no_grasps = (gmask > 0.5).sum(-1) == 0
+            grasps_mask = torch.as_tensor(observation[features.GRASPS_MASK])
+            shown_grasps = grasps_mask.reshape(b, -1) > 0.5
+            candidates = shown_grasps.sum(-1)
+            no_grasps = candidates == 0
 
         dist = surface_distance(observation, c.table_height)
         in_window = self._ood_remaining > 0
@@ -435,10 +437,6 @@ class SharedController:
         ood = in_window.clone()
         weights = prior_weights = torch.zeros(b, 0, dtype=torch.float64)
         shown: posterior.FactorizedTwistMixture | None = None
-        shown_grasps = candidates = None
-        if features.GRASPS_MASK in observation:
-            shown_grasps = torch.as_tensor(observation[features.GRASPS_MASK]).reshape(b, -1) > 0.5
-            candidates = shown_grasps.sum(-1)
 
         # The command's axes that carry an observation (the others are missing: the prior fills them).
         observed = commanded
@@ -452,11 +450,11 @@ class SharedController:
 
         if not bool(no_grasps.all()):
             prior_observation = observation
-            if self._goal_belief is not None and features.GRASPS in observation and features.GRASPS_MASK in observation:
+            if self._goal_belief is not None and grasps_mask is not None and features.GRASPS in observation:
                 self._goal_belief.update(observation, user, active & ~no_grasps, observed, s_u, g_u)
-                prior_observation = {**observation, features.GRASPS_MASK: self._goal_belief.kept(
-                    torch.as_tensor(observation[features.GRASPS_MASK]))}
-                shown_grasps = torch.as_tensor(prior_observation[features.GRASPS_MASK]).reshape(b, -1) > 0.5
+                kept = self._goal_belief.kept(grasps_mask)
+                prior_observation = {**observation, features.GRASPS_MASK: kept}
+                shown_grasps = kept.reshape(b, -1) > 0.5
             mixture = self.policy.predict_step0_mixture(prior_observation)
             if mixture.log_weights.shape[0] != b:
                 raise ValueError(f"policy returned a mixture of batch {mixture.log_weights.shape[0]}, expected {b}")
