@@ -13,6 +13,7 @@ from rtv3_maniskill.experiments.shared_benchmark import (
     BenchmarkConfig,
     BenchmarkError,
     merge_runs,
+    oracle_gain_share,
     results_store,
     run_benchmark,
     summarize,
@@ -237,6 +238,29 @@ def test_methods_are_paired_with_direct_and_tested_by_exact_mcnemar():
     assert (by_method["oracle+neoss"]["paired_trials"], by_method["oracle+neoss"]["wins"],
             by_method["oracle+neoss"]["losses"]) == (10, 0, 0)
     assert (by_method["oracle"]["wins"], by_method["oracle"]["losses"]) == (8, 2)
+
+
+def test_share_of_the_oracles_gain_is_computed_on_the_goals_all_three_ran():
+    # 20 goals: Direct succeeds on 10, the oracle on 18, RT-V3 on 14 -> share (14 - 10) / (18 - 10) = 50 %.
+    # A 21st goal only RT-V3 ran does not count; the laggy user's oracle is level with Direct: no share.
+    def row(g, user, method, ok):
+        return dict(scene_seed=1, grasp_index=g, user=user, method=method, outcome="success" if ok else "timeout",
+                    success=int(ok), collision=0, steps=50 if ok else 150)
+
+    rows = [row(g, "noisy", "direct", g < 10) for g in range(20)]
+    rows += [row(g, "noisy", "oracle", g < 18) for g in range(20)]
+    rows += [row(g, "noisy", "rtv3", g < 14) for g in range(21)]
+    rows += [row(g, "laggy", m, True) for g in range(5) for m in ("direct", "oracle", "rtv3")]
+    shares = oracle_gain_share(rows, resamples=500)
+    assert set(shares) == {("noisy", "rtv3")}
+    s = shares[("noisy", "rtv3")]
+    assert (s["goals"], s["baseline_SR"], s["SR"], s["ceiling_SR"]) == (20, 50.0, 70.0, 90.0)
+    assert s["share"] == pytest.approx(0.5)
+    assert s["share_low"] < 0.5 < s["share_high"] <= 1.0  # RT-V3 never beats the oracle on these goals
+    by_method = {(x["user"], x["method"]): x for x in summarize(rows)}
+    assert by_method[("noisy", "rtv3")]["oracle_gain_share"] == pytest.approx(0.5)
+    assert by_method[("laggy", "rtv3")]["oracle_gain_share"] is None
+    assert "| noisy | RT-V3 | 50 |" in summary_markdown(list(by_method.values()))
 
 
 def _rows(path):

@@ -61,7 +61,8 @@ _LATER_RESULT_FIELDS = {"qp_infeasible_steps": "0", "contact": ""}
 """Columns added to ``results.csv`` after its first version (the last ones of ``RESULT_FIELDS``, in the
 order they were added), with the value a file written before them reads as."""
 SUMMARY_FIELDS = ("user", "method", "trials", "SR", "CR", "TOR", "reached", "mean_iterations",
-                  "paired_trials", "wins", "losses", "mcnemar_p")
+                  "paired_trials", "wins", "losses", "mcnemar_p", "oracle_gain_share", "oracle_gain_share_low",
+                  "oracle_gain_share_high")
 DEFAULT_USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
 DEFAULT_METHODS = ("direct", "ho", "rtv3")
 METHOD_LABELS = {"direct": "Direct", "ho": "HO", "rtv3": "RT-V3", "oracle": "Oracle", "oracle_goal": "Oracle (goal)"}
@@ -310,15 +311,60 @@ def paired_with_baseline(rows: Iterable[dict[str, Any]],
     return out
 
 
+def oracle_gain_share(rows: Iterable[dict[str, Any]], baseline: str = "direct", ceiling: str = "oracle",
+                      resamples: int = 2000, seed: int = 0) -> dict[tuple[str, str], dict[str, Any]]:
+    """Per (user, method) other than ``baseline`` and ``ceiling``: the share of the ceiling's gain
+    over the baseline that the method reaches, ``(SR_m - SR_b) / (SR_c - SR_b)``, on the goals all
+    three ran (same user noise; a method behind a safety filter with the baseline and ceiling behind
+    the same filter), with a 95 % paired bootstrap interval: goals resampled with replacement
+    ``resamples`` times, a resample where the ceiling does not beat the baseline left out (the share
+    is undefined there). Users where the ceiling does not beat the baseline get no entry.
+
+    Returns ``{(user, method): dict(goals, baseline_SR, SR, ceiling_SR, share, share_low, share_high)}``
+    (SR in %, share as a fraction; the interval None if fewer than half of the resamples count)."""
+    outcome: dict[tuple[str, str], dict[tuple[int, int], bool]] = {}
+    for row in rows:
+        key = (int(row["scene_seed"]), int(row["grasp_index"]))
+        outcome.setdefault((row["user"], row["method"]), {})[key] = row["outcome"] == "success"
+    rng = np.random.default_rng(seed)
+    out = {}
+    for (user, method), trials in sorted(outcome.items()):
+        base_name, plus, safety_filter = method.partition("+")
+        if base_name in (baseline, ceiling):
+            continue
+        base = outcome.get((user, baseline + plus + safety_filter))
+        top = outcome.get((user, ceiling + plus + safety_filter))
+        if base is None or top is None:
+            continue
+        common = sorted(trials.keys() & base.keys() & top.keys())
+        if not common:
+            continue
+        m, b, c = (np.array([d[k] for k in common], dtype=float) for d in (trials, base, top))
+        if c.mean() <= b.mean():
+            continue
+        idx = rng.integers(0, len(common), size=(resamples, len(common)))
+        gain, top_gain = m[idx].mean(1) - b[idx].mean(1), c[idx].mean(1) - b[idx].mean(1)
+        counted = top_gain > 0
+        low = high = None
+        if counted.mean() >= 0.5:
+            low, high = (float(q) for q in np.quantile(gain[counted] / top_gain[counted], [0.025, 0.975]))
+        out[(user, method)] = dict(goals=len(common), baseline_SR=100 * b.mean(), SR=100 * m.mean(),
+                                   ceiling_SR=100 * c.mean(), share=(m.mean() - b.mean()) / (c.mean() - b.mean()),
+                                   share_low=low, share_high=high)
+    return out
+
+
 def summarize(rows: Iterable[dict[str, Any]], users: Sequence[str] | None = None,
               methods: Sequence[str] | None = None) -> list[dict[str, Any]]:
     """Per (user, method): trials, SR / CR / TOR % (exclusive outcomes, they add up to 100), reached %
     (pre-grasp reached, contact or not), mean iterations of the successful trials (NaN if none), and
     the paired comparison with Direct behind the same safety filter (:func:`paired_with_baseline`;
-    None for Direct itself).
+    None for Direct itself), and the share of the oracle's gain over Direct with its interval
+    (:func:`oracle_gain_share`; None without an oracle that beats Direct for that user).
     Every row counts; ``users`` / ``methods`` only set the order (names not listed follow, sorted)."""
     rows = list(rows)
     paired = paired_with_baseline(rows)
+    shares = oracle_gain_share(rows)
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for row in rows:
         groups.setdefault((row["user"], row["method"]), []).append(row)
@@ -341,8 +387,21 @@ def summarize(rows: Iterable[dict[str, Any]], users: Sequence[str] | None = None
                 reached=100.0 * sum(int(t["success"]) for t in trials) / n,
                 mean_iterations=float(np.mean([int(t["steps"]) for t in wins])) if wins else math.nan,
                 **paired.get((u, m), dict(paired_trials=None, wins=None, losses=None, mcnemar_p=None)),
+                **_share_fields(shares.get((u, m))),
             ))
     return out
+
+
+def _share_fields(share: dict[str, Any] | None) -> dict[str, Any]:
+    """The summary's columns of :func:`oracle_gain_share` (None where it has no entry)."""
+    share = share or {}
+    return dict(oracle_gain_share=share.get("share"), oracle_gain_share_low=share.get("share_low"),
+                oracle_gain_share_high=share.get("share_high"))
+
+
+def _percent(fraction: float) -> str:
+    """A fraction as a whole percentage (``-0.003`` -> ``"0"``)."""
+    return str(int(round(100 * fraction)))
 
 
 def _fmt(value: float, digits: int = 1) -> str:
@@ -396,6 +455,18 @@ def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | 
         "(their simulation; their Direct took 81 / 58 / 118 / 129 iterations for noisy / laggy / "
         "mode-switching / single-DoF).\n"
     )
+    shares = [s for s in summary if s.get("oracle_gain_share") is not None]
+    if shares:
+        notes += (
+            "\nShare of the oracle's gain over Direct, (SR - Direct SR) / (oracle SR - Direct SR), on the goals "
+            "all three ran, with a 95 % paired bootstrap interval over those goals:\n\n"
+            "| User | Method | share of the oracle's gain % | 95 % interval |\n|---|---|---:|---:|\n"
+        )
+        for s in shares:
+            interval = ("-" if s["oracle_gain_share_low"] is None else
+                        f"{_percent(s['oracle_gain_share_low'])} to {_percent(s['oracle_gain_share_high'])}")
+            share = _percent(s["oracle_gain_share"])
+            notes += f"| {s['user']} | {method_label(s['method'])} | {share} | {interval} |\n"
     return "\n".join(lines) + "\n" + notes
 
 
