@@ -79,3 +79,52 @@ def test_recursive_belief_concentrates_on_the_goal_consistent_commands_point_to(
     assert recursive[1] > forgetful[1] + 0.2  # the paper's forgetful posterior stays unsure
     with pytest.raises(ValueError, match="belief_memory"):
         SharedControlConfig(belief_memory=1.5)
+
+
+class MaskRecordingPrior:
+    """Test double of the learned prior: a fixed one-class mixture; records the grasp masks it is shown."""
+
+    def __init__(self):
+        self.masks, self.resets = [], 0
+
+    def predict_step0_mixture(self, observation):
+        from rtv3_maniskill.twist_mixture import TwistMixture
+
+        self.masks.append(torch.as_tensor(observation[features.GRASPS_MASK]).clone())
+        b = self.masks[-1].shape[0]
+
+        def rotation_given_translation(v):
+            return torch.zeros(*v.shape[:-1], 3, dtype=v.dtype), 0.01 * torch.eye(3, dtype=v.dtype).expand(
+                *v.shape[:-1], 3, 3)
+
+        return TwistMixture(torch.zeros(b, 1), torch.zeros(b, 1, 3), 0.01 * torch.eye(3).expand(b, 1, 3, 3).clone(),
+                            rotation_given_translation)
+
+    def reset(self):
+        self.resets += 1
+
+
+def test_rtv3_goal_shows_its_learned_prior_only_the_target_grasp():
+    """``rtv3-goal``: RT-V3's controller with the policy's grasp mask reduced to the trial's target
+    (a ceiling on reading the goal); no belief over the candidates; a target that is not among the
+    candidates is a named error."""
+    from rtv3_maniskill.experiments.episodes import make_method
+
+    policy = MaskRecordingPrior()
+    method = make_method("rtv3-goal", (0.3, 1.2), policy=policy, config=SharedControlConfig())
+    assert method.config.goal_belief_margin is None and method.config.max_linear_speed == 0.3
+    observation = {**observation_at(START), features.GRASPS: torch.zeros(1, 4, features.GRASP_DIM),
+                   features.GRASPS_MASK: torch.tensor([[1.0, 1.0, 1.0, 0.0]])}
+    with pytest.raises(RuntimeError, match="set_target"):
+        method.step(observation, torch.zeros(1, 6))
+    method.policy.set_target(1)
+    method.reset()
+    method.step(observation, torch.tensor([[0.1, 0.0, 0.0, 0.0, 0.0, 0.0]]))
+    torch.testing.assert_close(policy.masks[-1], torch.tensor([[0.0, 1.0, 0.0, 0.0]]))
+    assert policy.resets == 1
+    for missing in (3, 7):  # padding, out of range
+        method.policy.set_target(missing)
+        with pytest.raises(ValueError, match="not among the observation's 4 grasp candidates"):
+            method.step(observation, torch.zeros(1, 6))
+    with pytest.raises(ValueError, match="needs a policy"):
+        make_method("rtv3-goal", (0.3, 1.2))

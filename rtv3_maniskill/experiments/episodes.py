@@ -30,7 +30,7 @@ from rtv3_maniskill.experiments.planning import describe_contact, trial_outcome
 from rtv3_maniskill.shared_control.assistance import METHOD_NAMES, AssistanceMethod
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
 from rtv3_maniskill.shared_control.hindsight_optimization import HindsightOptimization
-from rtv3_maniskill.shared_control.oracle_prior import OraclePrior
+from rtv3_maniskill.shared_control.oracle_prior import OraclePrior, TargetShownPrior
 from rtv3_maniskill.shared_control.shared_controller import SharedControlConfig, SharedController
 from rtv3_maniskill.tasks.grasp_clutter import GraspClutterEnv
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
@@ -72,7 +72,8 @@ def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None
                 config: SharedControlConfig | None = None) -> AssistanceMethod:
     """Assistance method by name: ``"direct"``, ``"ho"``, ``"rtv3"`` (needs ``policy``) or an oracle
     (``"oracle"``, ``"oracle_goal"``: RT-V3's controller around an :class:`OraclePrior` whose goals the
-    caller sets before each episode), with the
+    caller sets before each episode) or ``"rtv3_goal"`` (RT-V3 whose prior is shown only the target
+    grasp, :class:`TargetShownPrior`, which the caller sets before each episode), with the
     env controller's ``speed_limits`` (m/s, rad/s); ``config`` sets the RT-V3 controller (its speed
     limits are replaced by the env's).
 
@@ -88,10 +89,12 @@ def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None
     if key in ("oracle", "oracle_goal"):  # goals set per trial: method.policy.set_goals(...)
         config = dataclasses.replace(config or SharedControlConfig(), max_linear_speed=lin, max_angular_speed=ang)
         return SharedController(OraclePrior(max_linear_speed=lin, max_angular_speed=ang), config)
-    if key in ("rtv3", "rt_v3"):
+    if key in ("rtv3", "rt_v3", "rtv3_goal"):
         if policy is None:
-            raise ValueError("method 'rtv3' needs a policy (load one with rtv3_maniskill.policies.rtv3.load_policy)")
+            raise ValueError(f"method {name!r} needs a policy (load one with rtv3_maniskill.policies.rtv3.load_policy)")
         config = dataclasses.replace(config or SharedControlConfig(), max_linear_speed=lin, max_angular_speed=ang)
+        if key == "rtv3_goal":  # the target alone: no belief over the candidates to build
+            return SharedController(TargetShownPrior(policy), dataclasses.replace(config, goal_belief_margin=None))
         return SharedController(policy, config)
     raise ValueError(f"unknown assistance method {name!r}; known methods: {', '.join(METHOD_NAMES)}")
 

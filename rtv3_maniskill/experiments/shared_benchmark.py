@@ -18,8 +18,10 @@ fall on the same step).
 Besides Direct, HO and RT-V3, the methods ``oracle`` and ``oracle_goal`` run the same fusion and
 gate as RT-V3 with a prior that knows the scene (:class:`~rtv3_maniskill.shared_control.oracle_prior.
 OraclePrior`: one class per feasible goal, or the true goal alone): the ceiling of what a learned
-prior can reach under the current fusion. ``summary.md`` pairs every method with Direct on the
-same goals and user noise (wins, losses, exact McNemar p) and puts the paper's Table II beside.
+prior can reach under the current fusion; ``rtv3_goal`` is RT-V3 with its learned prior shown only
+the true target (what reading the goal from the commands could at most give it). ``summary.md``
+pairs every method with Direct on the same goals and user noise (wins, losses, exact McNemar p,
+the share of the oracle's gain) and puts the paper's Table II beside.
 
 Outputs in ``output``: ``results.csv`` (one row per trial, appended and flushed as trials
 finish; a rerun skips the finished (scene, grasp, user, method) rows), ``goals.csv``,
@@ -65,7 +67,8 @@ SUMMARY_FIELDS = ("user", "method", "trials", "SR", "CR", "TOR", "reached", "mea
                   "oracle_gain_share_high")
 DEFAULT_USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
 DEFAULT_METHODS = ("direct", "ho", "rtv3")
-METHOD_LABELS = {"direct": "Direct", "ho": "HO", "rtv3": "RT-V3", "oracle": "Oracle", "oracle_goal": "Oracle (goal)"}
+METHOD_LABELS = {"direct": "Direct", "ho": "HO", "rtv3": "RT-V3", "oracle": "Oracle", "oracle_goal": "Oracle (goal)",
+                 "rtv3_goal": "RT-V3 (goal)"}
 def method_label(name: str) -> str:
     """Table label of a method name: ``"direct+neoss"`` -> ``"Direct w. NeoSS"``."""
     base, _, safety = name.partition("+")
@@ -102,7 +105,8 @@ class BenchmarkConfig:
 
     output: Path
     policy_path: Path | None = None
-    """RT-V3 checkpoint; None = the shipped one. Only loaded when ``"rtv3"`` is among the methods."""
+    """RT-V3 checkpoint; None = the shipped one. Only loaded when ``"rtv3"`` or ``"rtv3_goal"`` is among the
+    methods."""
     scenes: int = 50
     users: Sequence[str] = DEFAULT_USERS
     methods: Sequence[str] = DEFAULT_METHODS
@@ -116,7 +120,10 @@ class BenchmarkConfig:
     """End a trial at the first robot contact, a failure (the paper's protocol); False lets it go on
     (the contact still counts as a collision, and "reached" says whether the pre-grasp was reached)."""
     obs_mode: str = "state_dict"
-    rendered_context: bool = False
+    rendered_context: bool = True
+    """``state_dict`` mode: the scene cloud rendered once per scene from the depth camera, as `rtv3
+    generate` stores it for training (and as ``rtv3 benchmark-shared`` runs by default); False: the
+    mesh-sampled cloud (``--mesh-context``), which the shipped prior was not trained on."""
     scene_type: str = "mixed"
     object_source: str = "procedural"
     """GraspClutter-v1's ``object_source`` (e.g. ``"random_urdfs"``); in the fingerprint when not the default."""
@@ -188,7 +195,7 @@ class BenchmarkConfig:
     @property
     def uses_shared_controller(self) -> bool:
         """Whether a method runs the RT-V3 fusion (RT-V3 or an oracle)."""
-        return any(m in ("rtv3", "oracle", "oracle_goal") for m in self.methods)
+        return any(m in ("rtv3", "rtv3_goal", "oracle", "oracle_goal") for m in self.methods)
 
     def scene_seeds(self) -> list[int]:
         return scene_seeds(self.seed, self.scenes)
@@ -597,7 +604,7 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     torch.set_num_threads(1)
     output = config.output
     output.mkdir(parents=True, exist_ok=True)
-    need_policy = "rtv3" in config.methods
+    need_policy = any(m in ("rtv3", "rtv3_goal") for m in config.methods)
     policy_path = None
     if need_policy and policy is None:
         policy_path = Path(config.policy_path) if config.policy_path is not None else SHIPPED_CHECKPOINT
@@ -651,6 +658,8 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
                         start = time.perf_counter()
                         if method_name in ("oracle", "oracle_goal"):  # the prior that knows the scene
                             method.policy.set_goals(pregrasps[feasible] if method_name == "oracle" else pregrasps[[g]])
+                        elif method_name == "rtv3_goal":  # the learned prior told the target
+                            method.policy.set_target(g)
                         result = run_episode(
                             env, method, make_user(user_name, u_seed), max_steps=config.max_steps, seed=scene_seed,
                             options=trial_options(g),

@@ -6,9 +6,11 @@ from typing import Any, Protocol, runtime_checkable
 
 import torch
 
-METHOD_NAMES = ("direct", "ho", "rtv3", "oracle", "oracle_goal")
+METHOD_NAMES = ("direct", "ho", "rtv3", "oracle", "oracle_goal", "rtv3_goal")
 """Assistance methods by name; the oracles are RT-V3's controller around a prior that knows the
-scene (:class:`~rtv3_maniskill.shared_control.oracle_prior.OraclePrior`)."""
+scene (:class:`~rtv3_maniskill.shared_control.oracle_prior.OraclePrior`); ``rtv3_goal`` is RT-V3 with
+its learned prior shown only the true target (:class:`~rtv3_maniskill.shared_control.oracle_prior.
+TargetShownPrior`)."""
 
 
 @runtime_checkable

@@ -6,6 +6,9 @@ simulated users compute it), norm-clipped to the controller's speed limits; tran
 rotation covariances are fixed (by default about the learned prior's median: 0.02 m/s and
 0.1 rad/s standard deviations). Classes are equally likely. With every feasible goal of the scene
 it is the ``oracle`` of the shared-control benchmark; with the true goal alone, ``oracle-goal``.
+:class:`TargetShownPrior` is the other half of that split: the learned prior itself, shown only the
+true target among the grasp candidates (``rtv3-goal``): what reading the goal from the user's
+commands could at most give the learned prior.
 
 It has the interface :class:`~rtv3_maniskill.shared_control.shared_controller.SharedController`
 needs from a prior (``predict_step0_mixture``, ``reset``), so the fusion and the gate under test
@@ -81,3 +84,38 @@ class OraclePrior:
 
         log_weights = torch.full((b, g), -math.log(g), dtype=torch.float64)
         return TwistMixture(log_weights, e[..., :3].clone(), trans_cov, rotation_given_translation)
+
+
+class TargetShownPrior:
+    """The learned prior shown only the trial's target among the observation's grasp candidates.
+
+    Args:
+        policy: a prior with ``predict_step0_mixture(observation)`` and ``reset()`` (the RT-V3 policy).
+    The target is the index of the grasp candidate in ``observation.grasps`` (:meth:`set_target`).
+    """
+
+    def __init__(self, policy: Any) -> None:
+        self.policy = policy
+        self.config = getattr(policy, "config", None)
+        self.target: int | None = None
+
+    def set_target(self, index: int) -> None:
+        """The target grasp candidate's index of the coming episodes (>= 0)."""
+        if int(index) < 0:
+            raise ValueError(f"target index must be >= 0, got {index}")
+        self.target = int(index)
+
+    def reset(self) -> None:
+        self.policy.reset()
+
+    def predict_step0_mixture(self, observation: dict[str, Any]) -> TwistMixture:
+        """The policy's step-0 mixture with ``observation.grasps_mask`` reduced to the target."""
+        if self.target is None:
+            raise RuntimeError("TargetShownPrior has no target: call set_target(index) first")
+        mask = torch.as_tensor(observation[features.GRASPS_MASK])
+        if self.target >= mask.shape[-1] or not bool((mask[..., self.target] > 0.5).all()):
+            raise ValueError(f"target {self.target} is not among the observation's {mask.shape[-1]} grasp candidates "
+                             "(masked out or out of range)")
+        only = torch.zeros_like(mask)
+        only[..., self.target] = 1
+        return self.policy.predict_step0_mixture({**observation, features.GRASPS_MASK: only})
