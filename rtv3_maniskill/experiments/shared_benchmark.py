@@ -194,7 +194,7 @@ class BenchmarkConfig:
 
     @property
     def uses_shared_controller(self) -> bool:
-        """Whether a method runs the RT-V3 fusion (RT-V3 or an oracle)."""
+        """Whether a method runs the RT-V3 fusion (RT-V3, RT-V3 told the goal, or an oracle)."""
         return any(m in ("rtv3", "rtv3_goal", "oracle", "oracle_goal") for m in self.methods)
 
     def scene_seeds(self) -> list[int]:
