@@ -293,20 +293,31 @@ def mcnemar_exact(wins: int, losses: int) -> float:
     return 1.0 if n == 0 else float(binomtest(int(wins), n, 0.5).pvalue)
 
 
+def _success_by_trial(rows: Iterable[dict[str, Any]]) -> dict[tuple[str, str], dict[tuple[int, int], bool]]:
+    """``{(user, method): {(scene_seed, grasp_index): succeeded}}``: the trials to pair methods on."""
+    outcome: dict[tuple[str, str], dict[tuple[int, int], bool]] = {}
+    for row in rows:
+        key = (int(row["scene_seed"]), int(row["grasp_index"]))
+        outcome.setdefault((row["user"], row["method"]), {})[key] = row["outcome"] == "success"
+    return outcome
+
+
+def _behind_same_filter(name: str, method: str) -> str:
+    """The method ``name`` behind ``method``'s safety filter: ``("direct", "rtv3+neoss")`` -> ``"direct+neoss"``."""
+    _, plus, safety_filter = method.partition("+")
+    return name + plus + safety_filter
+
+
 def paired_with_baseline(rows: Iterable[dict[str, Any]],
                          baseline: str = "direct") -> dict[tuple[str, str], dict[str, Any]]:
     """Per (user, method) other than ``baseline``: the trials both ran (same scene, goal and user
     noise), ``wins`` (success where the baseline failed), ``losses`` (the reverse) and the exact
     McNemar p-value. A method behind a safety filter (``"rtv3+neoss"``) is paired with the baseline
     behind the same filter (``"direct+neoss"``), so the filter's own effect is not counted as help."""
-    outcome: dict[tuple[str, str], dict[tuple[int, int], bool]] = {}
-    for row in rows:
-        key = (int(row["scene_seed"]), int(row["grasp_index"]))
-        outcome.setdefault((row["user"], row["method"]), {})[key] = row["outcome"] == "success"
+    outcome = _success_by_trial(rows)
     out = {}
     for (user, method), trials in outcome.items():
-        _, plus, safety_filter = method.partition("+")
-        paired_baseline = baseline + plus + safety_filter
+        paired_baseline = _behind_same_filter(baseline, method)
         base = outcome.get((user, paired_baseline))
         if method == paired_baseline or base is None:
             continue
@@ -329,18 +340,14 @@ def oracle_gain_share(rows: Iterable[dict[str, Any]], baseline: str = "direct", 
 
     Returns ``{(user, method): dict(goals, baseline_SR, SR, ceiling_SR, share, share_low, share_high)}``
     (SR in %, share as a fraction; the interval None if fewer than half of the resamples count)."""
-    outcome: dict[tuple[str, str], dict[tuple[int, int], bool]] = {}
-    for row in rows:
-        key = (int(row["scene_seed"]), int(row["grasp_index"]))
-        outcome.setdefault((row["user"], row["method"]), {})[key] = row["outcome"] == "success"
+    outcome = _success_by_trial(rows)
     rng = np.random.default_rng(seed)
     out = {}
     for (user, method), trials in sorted(outcome.items()):
-        base_name, plus, safety_filter = method.partition("+")
-        if base_name in (baseline, ceiling):
+        if method in (_behind_same_filter(baseline, method), _behind_same_filter(ceiling, method)):
             continue
-        base = outcome.get((user, baseline + plus + safety_filter))
-        top = outcome.get((user, ceiling + plus + safety_filter))
+        base = outcome.get((user, _behind_same_filter(baseline, method)))
+        top = outcome.get((user, _behind_same_filter(ceiling, method)))
         if base is None or top is None:
             continue
         common = sorted(trials.keys() & base.keys() & top.keys())

@@ -96,7 +96,6 @@ class TargetShownPrior:
 
     def __init__(self, policy: Any) -> None:
         self.policy = policy
-        self.config = getattr(policy, "config", None)
         self.target: int | None = None
 
     def set_target(self, index: int) -> None:
