@@ -25,7 +25,10 @@ def make_grasp_clutter(**kwargs):
 
 
 def _register_lazily() -> None:
-    import gymnasium as gym
+    try:
+        import gymnasium as gym
+    except ModuleNotFoundError:  # a machine that only trains the model (policies/rtv3/compact_training.py)
+        return
     from gymnasium.envs.registration import WrapperSpec
 
     if ENV_ID in gym.registry:

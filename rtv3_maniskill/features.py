@@ -45,6 +45,8 @@ GRASPS_MASK = "observation.grasps_mask"
 """``(M,)`` 1.0 for a real candidate, 0.0 for padding."""
 ACTION = "action"
 """``(6,)`` end-effector body twist [v, w] realised over this step: log(T_t^-1 T_{t+1}) / dt."""
+ENV_STATE = "observation.environment_state"
+"""LeRobot's packed environment-state key: the point cloud and grasps in one vector (:func:`pack_context`)."""
 TARGET_GRASP = "target_grasp_index"
 """``(1,)`` int64 index into the grasp set of the episode's target (privileged)."""
 

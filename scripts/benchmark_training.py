@@ -14,6 +14,11 @@ Samples/s of a run come from LeRobot's training log: every ``--log_freq`` steps 
 of those steps; one window's rate is ``batch_size / (updt_s + data_s)``. The first window (worker
 start-up, first-touch allocations) is dropped. Prints every run, the median per path and the ratio.
 
+``--compact`` adds a third path, the compact-cache trainer (``rtv3 compact-cache``: the dataset reduced
+once to a cache, then ``python -m rtv3_maniskill.cli.compact_cache train``, PyTorch alone, same batch
+size and threads); its samples/s per run is the trainer's own median over its logging windows after the
+first.
+
 Example (dataset: ``rtv3 generate --num-scenes 20 --grasps-per-scene 8 --num-points 512
 --output /tmp/bench_ds --seed 3 --context mesh``)::
 
@@ -66,6 +71,19 @@ def run_training(dataset: Path, path: str, batch_size: int, steps: int, log_freq
     return [batch_size / (u + d) for u, d in windows[1:]]
 
 
+def run_compact(cache: Path, batch_size: int, steps: int, log_freq: int, threads: int | None) -> list[float]:
+    """One compact-cache training run (fresh weights, as the lerobot-train runs); its median samples/s."""
+    with tempfile.TemporaryDirectory(prefix="rtv3_bench_compact_") as tmp:
+        cmd = [sys.executable, "-m", "rtv3_maniskill.cli.compact_cache", "train", f"--cache={cache}",
+               f"--output={Path(tmp) / 'run'}", f"--steps={steps}", f"--batch-size={batch_size}",
+               f"--log-freq={log_freq}", f"--save-freq={10 * steps}", "--device=cpu"]
+        env = dict(os.environ, **({"OMP_NUM_THREADS": str(threads)} if threads else {}))
+        result = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp)
+    if result.returncode != 0:
+        raise RuntimeError(f"compact training failed:\n{result.stderr[-3000:]}")
+    return [json.loads(result.stdout[result.stdout.index("{"):])["samples_per_s"]]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--dataset", type=Path, required=True, help="LeRobot dataset root (rtv3 generate --output)")
@@ -79,6 +97,8 @@ def main() -> None:
     parser.add_argument("--baseline", default=None,
                         help="git commit whose rtv3_maniskill runs the old path (e.g. the commit before the training "
                              "cache); default: this code with --policy.training_cache=false")
+    parser.add_argument("--compact", action="store_true",
+                        help="also time the compact-cache trainer (rtv3 compact-cache) on the same data")
     parser.add_argument("extra", nargs="*", help="more lerobot-train flags for both paths (after --)")
     args = parser.parse_args()
 
@@ -95,12 +115,21 @@ def main() -> None:
                                cwd=tempfile.gettempdir())
         if not probe.stdout.startswith(tmp.name):
             raise RuntimeError(f"the baseline package does not shadow the installed one: {probe.stdout}{probe.stderr}")
-    rates: dict[str, list[float]] = {"old": [], "new": []}
+    rates: dict[str, list[float]] = {"old": [], "new": [], "compact": []}
+    paths = ("old", "new", "compact") if args.compact else ("old", "new")
+    if args.compact:
+        cache = Path(tmp.name) / "compact_cache"
+        subprocess.run([sys.executable, "-m", "rtv3_maniskill.cli", "compact-cache", "build",
+                        f"--dataset.root={args.dataset}", f"--output={cache}", "--max-mib=100000"], check=True,
+                       capture_output=True)
     for r in range(args.rounds):
-        for path in ("old", "new") if r % 2 == 0 else ("new", "old"):
+        for path in paths if r % 2 == 0 else paths[::-1]:
             start = time.perf_counter()
-            windows = run_training(args.dataset, path, args.batch_size, args.steps, args.log_freq,
-                                   None if args.num_workers < 0 else args.num_workers, args.threads, args.extra)
+            if path == "compact":
+                windows = run_compact(cache, args.batch_size, args.steps, args.log_freq, args.threads)
+            else:
+                windows = run_training(args.dataset, path, args.batch_size, args.steps, args.log_freq,
+                                       None if args.num_workers < 0 else args.num_workers, args.threads, args.extra)
             rates[path] += windows
             print(f"round {r} {path}: median {statistics.median(windows):7.1f} samples/s over {len(windows)} windows "
                   f"({time.perf_counter() - start:.0f} s wall)", flush=True)
@@ -111,6 +140,10 @@ def main() -> None:
     print(f"old ({label}): {old:7.1f} samples/s  ({args.batch_size / old:.3f} s/step)")
     print(f"new (this tree, defaults): {new:7.1f} samples/s  ({args.batch_size / new:.3f} s/step)")
     print(f"ratio new/old: {new / old:.2f}x")
+    if args.compact:
+        compact = statistics.median(rates["compact"])
+        print(f"compact-cache trainer: {compact:7.1f} samples/s  ({args.batch_size / compact:.3f} s/step); "
+              f"ratio compact/new: {compact / new:.2f}x")
     tmp.cleanup()
 
 

@@ -21,6 +21,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
                       "time GraspClutter-v1: steps/s, reset incl. grasp sampling, point-cloud capture"),
     "teleop": ("teleop", "interactive shared-control grasping by keyboard, gamepad or simulated user (recorded)"),
     "study": ("study", "user study: plan a counterbalanced schedule, analyze recorded sessions (stats + box plots)"),
+    "compact-cache": ("compact_cache",
+                      "train the prior from a compact cache of a dataset (build / train, e.g. on a GPU / finish)"),
     "benchmark-shared": ("benchmark_shared",
                          "simulated users x Direct / HO / RT-V3 / oracles: SR, CR, iterations, paired (resumable)"),
 }

@@ -12,13 +12,23 @@ from __future__ import annotations
 from typing import Any
 
 from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT, load_policy
-from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
+
+try:
+    from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
+except ModuleNotFoundError as err:  # a machine with PyTorch alone trains the model (compact_training.py)
+    if (err.name or "").split(".")[0] != "lerobot":
+        raise
+    _LEROBOT_MISSING = err
 
 __all__ = ["RTV3Config", "RTV3Policy", "RTV3Model", "SHIPPED_CHECKPOINT", "load_policy",
            "make_rtv3_pre_post_processors"]
 
 
 def __getattr__(name: str) -> Any:
+    if name in ("RTV3Config", "RTV3Policy", "make_rtv3_pre_post_processors") and "_LEROBOT_MISSING" in globals():
+        raise ImportError(f"rtv3_maniskill.policies.rtv3.{name} needs LeRobot, which is not installed here "
+                          f"({_LEROBOT_MISSING}); without it only the model trains (rtv3_maniskill.policies.rtv3."
+                          "compact_training)")
     if name == "RTV3Policy":
         from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
 

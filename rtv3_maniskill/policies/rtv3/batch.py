@@ -19,7 +19,10 @@ from dataclasses import dataclass, replace
 import torch
 
 from rtv3_maniskill import features
-from rtv3_maniskill.policies.rtv3.configuration_rtv3 import ENV_STATE, GRASP_SUBSET_SIZES
+
+ENV_STATE = features.ENV_STATE
+GRASP_SUBSET_SIZES = ("uniform", "log_uniform")
+"""Distributions of the grasp-subset size (``RTV3Config.grasp_subset_sizes``; see :func:`subsample_grasps`)."""
 
 
 @dataclass

@@ -19,15 +19,13 @@ from torch.optim import Optimizer
 from torch.optim.lr_scheduler import LambdaLR
 
 from rtv3_maniskill import features as ft
+from rtv3_maniskill.policies.rtv3.batch import GRASP_SUBSET_SIZES
 from rtv3_maniskill.policies.rtv3.egocentric import HISTORY_ROTATION_RESAMPLE_MODES
-
-GRASP_SUBSET_SIZES = ("uniform", "log_uniform")
-"""Distributions of the grasp-subset size (``grasp_subset_sizes``; see ``batch.subsample_grasps``)."""
+from rtv3_maniskill.policies.rtv3.schedules import exponential_lr_factor
 
 LATENT_TRAINING_MODES = ("enumerate", "sample")
 ROTATION_CONDITIONING_MODES = ("demonstrated", "sampled")
-ENV_STATE = "observation.environment_state"
-"""LeRobot's packed environment-state key (``features.pack_context`` layout)."""
+ENV_STATE = ft.ENV_STATE
 
 
 @LRSchedulerConfig.register_subclass("rtv3_exponential")
@@ -40,8 +38,7 @@ class RTV3ExponentialSchedulerConfig(LRSchedulerConfig):
     min_lr_ratio: float = 0.1
 
     def build(self, optimizer: Optimizer, num_training_steps: int) -> LambdaLR:
-        decay, floor = self.decay_rate, self.min_lr_ratio
-        return LambdaLR(optimizer, lambda step: max(decay**step, floor))
+        return LambdaLR(optimizer, exponential_lr_factor(self.decay_rate, self.min_lr_ratio))
 
 
 @PreTrainedConfig.register_subclass("rtv3")

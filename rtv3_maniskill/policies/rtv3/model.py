@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
@@ -18,7 +19,6 @@ from torch import nn
 from rtv3_maniskill import features, se3
 from rtv3_maniskill.policies.rtv3 import egocentric
 from rtv3_maniskill.policies.rtv3.batch import RTV3Inputs
-from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.context_encoders import GraspEncoder, PointCloudEncoder
 from rtv3_maniskill.policies.rtv3.decoder import DecoderStart, TrajectoryDecoder
 from rtv3_maniskill.policies.rtv3.gaussians import JointGaussian
@@ -30,6 +30,9 @@ from rtv3_maniskill.policies.rtv3.latent import (
     sigmoid_anneal,
 )
 from rtv3_maniskill.twist_mixture import TwistMixture
+
+if TYPE_CHECKING:  # the model reads its config's fields only: it also trains without LeRobot (compact_training.py)
+    from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 
 
 @dataclass
