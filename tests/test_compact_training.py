@@ -146,6 +146,9 @@ def test_budget_keeps_whole_episodes(dataset):
     assert smaller.num_episodes == 2 and smaller.nbytes() < compact.nbytes()
     lengths = set(smaller.episode_length.tolist())
     assert lengths < {9, 14, 6} and smaller.num_frames == sum(smaller.episode_length.tolist())
+    both = CompactCache.concatenate([compact, smaller])
+    assert both.num_episodes == 5 and both.point_cloud.shape[0] == 4
+    assert torch.equal(both.point_cloud[both.episode_context[3:]], smaller.point_cloud[smaller.episode_context])
     with pytest.raises(ValueError, match="episode_length"):
         CompactCache(**{**{f: getattr(compact, f) for f in compact.__dataclass_fields__},
                         "episode_length": compact.episode_length + 1})

@@ -25,7 +25,8 @@ from pathlib import Path
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="step", metavar="STEP", required=True)
     build = sub.add_parser("build", help="LeRobot dataset -> compact cache folder (needs LeRobot)")
-    build.add_argument("--dataset.root", dest="dataset_root", type=Path, required=True, help="LeRobot dataset folder")
+    build.add_argument("--dataset.root", dest="dataset_roots", type=Path, required=True, action="append",
+                       help="LeRobot dataset folder (repeat it to train on several without merging them)")
     build.add_argument("--output", type=Path, required=True, help="cache folder to write")
     build.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
                        help="checkpoint whose config and weights start the run (default: a fresh RTV3Config)")
@@ -62,6 +63,7 @@ def _build(args: argparse.Namespace) -> dict:
         CACHE_FILE,
         INIT_WEIGHTS_FILE,
         SUMMARY_FILE,
+        CompactCache,
         fit_budget,
         from_lerobot_dataset,
     )
@@ -87,7 +89,8 @@ def _build(args: argparse.Namespace) -> dict:
         except json.JSONDecodeError:
             changes[key] = text
     try:
-        compact = from_lerobot_dataset(args.dataset_root, config.n_obs_steps)
+        compact = CompactCache.concatenate([from_lerobot_dataset(root, config.n_obs_steps)
+                                            for root in args.dataset_roots])
         changes.setdefault("num_points", int(compact.point_cloud.shape[1]))
         changes.setdefault("max_grasps", int(compact.grasps.shape[1]))
         changes.update(device="cpu", init_weights_from=None, input_features={}, output_features={})
@@ -103,7 +106,8 @@ def _build(args: argparse.Namespace) -> dict:
     config._save_pretrained(args.output)
     if args.policy_path is not None:
         shutil.copyfile(args.policy_path / "model.safetensors", args.output / INIT_WEIGHTS_FILE)
-    summary = {"dataset": str(args.dataset_root), "episodes": compact.num_episodes, "dataset_episodes": total,
+    summary = {"datasets": [str(root) for root in args.dataset_roots], "episodes": compact.num_episodes,
+               "dataset_episodes": total,
                "frames": compact.num_frames, "scene_contexts": int(compact.point_cloud.shape[0]),
                "in_memory_mib": round(compact.nbytes() / 2**20, 2),
                "folder_mib": round(sum(p.stat().st_size for p in args.output.iterdir()) / 2**20, 2),

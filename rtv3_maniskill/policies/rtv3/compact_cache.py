@@ -136,6 +136,20 @@ class CompactCache:
             self.episode_target[keep], self.history_prefix[keep], self.point_cloud[used], self.point_mask[used],
             self.grasps[used], self.grasp_mask[used])
 
+    @classmethod
+    def concatenate(cls, parts: list[CompactCache]) -> CompactCache:
+        """Several caches as one (e.g. demonstrations and DAgger rounds, without merging the datasets)."""
+        if not parts:
+            raise ValueError("no caches to concatenate")
+        shapes = {(p.history_steps, *p.point_cloud.shape[1:], *p.grasps.shape[1:]) for p in parts}
+        if len(shapes) > 1:
+            raise ValueError(f"caches with different history / points / grasps (T, N, 6, M, 9): {sorted(shapes)}")
+        offsets = np.cumsum([0] + [p.point_cloud.shape[0] for p in parts[:-1]])
+        cat = lambda name: torch.cat([getattr(p, name) for p in parts])  # noqa: E731
+        return cls(cat("states"), cat("actions"), cat("episode_length"),
+                   torch.cat([p.episode_context + int(o) for p, o in zip(parts, offsets)]), cat("episode_target"),
+                   cat("history_prefix"), cat("point_cloud"), cat("point_mask"), cat("grasps"), cat("grasp_mask"))
+
     # ------------------------------------------------------------------ training batches
 
     def windows(self) -> WindowedCache:
