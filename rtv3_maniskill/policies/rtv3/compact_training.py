@@ -168,7 +168,7 @@ def train(cache_dir: str | Path, output_dir: str | Path, steps: int, batch_size:
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=steps, initial=done, desc="compact training", unit="step")
+        bar = tqdm(total=steps, initial=done, desc="compact training", unit="step", mininterval=5.0)
     model.train()
     started = time.perf_counter()
     finished = done
