@@ -160,8 +160,10 @@ def test_build_train_without_lerobot_resume_and_finish(dataset, tmp_path):
     from rtv3_maniskill.policies.rtv3 import load_policy
 
     cache = tmp_path / "cache"
+    from rtv3_maniskill.policies.rtv3 import SHIPPED_CHECKPOINT
+
     assert main(["compact-cache", "build", "--dataset.root", str(dataset.root), "--output", str(cache),
-                 "--set", "optimizer_lr=0.0005"]) == 0
+                 "--policy.path", str(SHIPPED_CHECKPOINT), "--set", "optimizer_lr=0.0005"]) == 0
     summary = json.loads((cache / "summary.json").read_text())
     assert summary["episodes"] == 3 and summary["frames"] == 29 and summary["scene_contexts"] == 2
     saved = json.loads((cache / "config.json").read_text())
@@ -187,7 +189,11 @@ def test_build_train_without_lerobot_resume_and_finish(dataset, tmp_path):
     assert main(["compact-cache", "finish", str(run / "checkpoints" / "last")]) == 0
     assert (run / "checkpoints" / "last" / "policy_preprocessor.json").is_file()
     policy = load_policy(run / "checkpoints" / "last")
-    assert int(policy.train_step) == 6 and policy.config.optimizer_lr == 0.0005
+    shipped = load_policy()
+    assert int(policy.train_step) == int(shipped.train_step) + 6 and policy.config.optimizer_lr == 0.0005
+    # fine-tuned from the shipped weights: changed by the steps, but not far
+    change = [(a - b).abs().max() for a, b in zip(policy.parameters(), shipped.parameters())]
+    assert 0 < max(change) < 0.05
     batch = make_scene_batch(policy.config, batch=2, seed=3)
     twist = policy.select_action({k: v[:, -1] if k == ft.STATE else v for k, v in batch.items() if k != ft.ACTION})
     assert twist.shape == (2, 6) and bool(torch.isfinite(twist).all())

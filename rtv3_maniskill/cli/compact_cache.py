@@ -59,6 +59,8 @@ def _add_train_arguments(train: argparse.ArgumentParser) -> None:
 def _build(args: argparse.Namespace) -> dict:
     import dataclasses
 
+    from lerobot.configs.policies import PreTrainedConfig
+
     from rtv3_maniskill.policies.rtv3.compact_cache import (
         CACHE_FILE,
         INIT_WEIGHTS_FILE,
@@ -75,7 +77,9 @@ def _build(args: argparse.Namespace) -> dict:
         for name in ("config.json", "model.safetensors"):
             if not (args.policy_path / name).is_file():
                 raise SystemExit(f"error: --policy.path {args.policy_path} holds no {name}")
-        config = RTV3Config.from_pretrained(args.policy_path)
+        config = PreTrainedConfig.from_pretrained(args.policy_path)
+        if not isinstance(config, RTV3Config):
+            raise SystemExit(f"error: --policy.path {args.policy_path} is a '{config.type}' policy, not 'rtv3'")
     else:
         config = RTV3Config()
     names = {f.name for f in dataclasses.fields(RTV3Config)}

@@ -87,13 +87,16 @@ def load_model_state(model: RTV3Model, path: Path) -> int:
     return int(state[STEP_KEY]) if STEP_KEY in state else 0
 
 
-def _save_checkpoint(folder: Path, cfg: dict, model: RTV3Model, step: int, optimizer, scheduler, epoch_state) -> None:
+def _save_checkpoint(folder: Path, cfg: dict, model: RTV3Model, model_step: int, run_step: int, optimizer, scheduler,
+                     epoch_state) -> None:
+    """``model_step``: the weights' training step (annealing; a fine-tune counts on from its start);
+    ``run_step``: the steps of this run, which a resumed run starts from."""
     tmp = folder.with_name(folder.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     (tmp / CONFIG_FILE).write_text(json.dumps(cfg, indent=4))
-    save_file(model_state(model, step), str(tmp / "model.safetensors"))
-    torch.save({"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "step": step,
+    save_file(model_state(model, model_step), str(tmp / "model.safetensors"))
+    torch.save({"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "step": run_step,
                 "epoch_state": epoch_state, "torch_rng": torch.get_rng_state(),
                 "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None},
                tmp / "training_state.pt")
@@ -200,7 +203,7 @@ def train(cache_dir: str | Path, output_dir: str | Path, steps: int, batch_size:
             bar.update(1)
         if finished % save_freq == 0 or finished == steps or out_of_time:
             folder = output_dir / "checkpoints" / f"{finished:06d}"
-            _save_checkpoint(folder, cfg, model, model_step + finished, optimizer, scheduler, epoch_state)
+            _save_checkpoint(folder, cfg, model, model_step + finished, finished, optimizer, scheduler, epoch_state)
             shutil.rmtree(last, ignore_errors=True)
             shutil.copytree(folder, last)
         if out_of_time:
