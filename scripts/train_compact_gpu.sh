@@ -4,11 +4,13 @@
 #   rtv3 compact-cache build --dataset.root DATA --output CACHE [--policy.path CKPT] [--max-mib 60]
 # to that machine, then there:
 #   bash scripts/train_compact_gpu.sh CACHE RUN [compact-cache train flags, e.g. --steps 20000 --batch-size 512]
-# It prints the machine, times the training step at batch sizes $THROUGHPUT_BATCHES (default "64 512";
-# none with THROUGHPUT_BATCHES=""), then trains into RUN (resumable: rerun the same command) and, with
-# $OUT set, copies the last checkpoint's config.json and model.safetensors and the logs there. Bring
-# RUN/checkpoints/last (or $OUT) back and run `rtv3 compact-cache finish FOLDER` to make it a LeRobot
-# pretrained_model folder. DEVICE (default cuda) picks another torch device.
+# It prints the machine, times $THROUGHPUT_STEPS (150) training steps at each batch size of
+# $THROUGHPUT_BATCHES (default "64 512"; none with THROUGHPUT_BATCHES=""), then trains into RUN
+# (resumable: rerun the same command) and, with $OUT set, copies config.json, each checkpoint's
+# weights (model_NNNNNN.safetensors) and the logs there. Bring RUN/checkpoints/last back (or
+# config.json with one model_NNNNNN.safetensors renamed model.safetensors) and run
+# `rtv3 compact-cache finish FOLDER` to make it a LeRobot pretrained_model folder.
+# DEVICE (default cuda) picks another torch device, PYTHON another interpreter.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if [[ $# -lt 2 ]]; then
@@ -31,12 +33,15 @@ if device.type == "cuda" and not torch.cuda.is_available():
 PYEOF
 logs=$(mktemp -d)
 for batch in ${THROUGHPUT_BATCHES-64 512}; do
-  train --output "$logs/throughput_$batch" --steps 150 --batch-size "$batch" --log-freq 25 --save-freq 1000000 \
+  train --output "$logs/throughput_$batch" --steps "${THROUGHPUT_STEPS:-150}" --batch-size "$batch" --log-freq 25 --save-freq 1000000 \
     | tee "$logs/throughput_b$batch.json"
   rm -rf "$logs/throughput_$batch"
 done
 train --output "$run" "$@" | tee "$logs/train.json"
-if [[ -n ${OUT:-} ]]; then
-  cp "$run/checkpoints/last/config.json" "$run/checkpoints/last/model.safetensors" "$OUT/"
-  cp "$logs"/*.json "$OUT/"
+if [[ -n ${OUT:-} ]]; then  # every saved checkpoint's weights (choose --save-freq accordingly) and the logs
+  cp "$run/checkpoints/last/config.json" "$OUT/"
+  for ckpt in "$run"/checkpoints/[0-9]*; do
+    cp "$ckpt/model.safetensors" "$OUT/model_$(basename "$ckpt").safetensors"
+  done
+  cat "$logs"/*.json > "$OUT/logs.json"
 fi
