@@ -101,6 +101,7 @@ def main() -> None:
                         help="also time the compact-cache trainer (rtv3 compact-cache) on the same data")
     parser.add_argument("extra", nargs="*", help="more lerobot-train flags for both paths (after --)")
     args = parser.parse_args()
+    args.dataset = args.dataset.resolve()  # the runs start in a temporary folder
 
     global BASELINE_SRC
     tmp = tempfile.TemporaryDirectory(prefix="rtv3_bench_baseline_")
