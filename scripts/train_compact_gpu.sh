@@ -3,7 +3,7 @@
 # ManiSkill or network). Copy the repository and a cache folder made here with
 #   rtv3 compact-cache build --dataset.root DATA --output CACHE [--policy.path CKPT] [--max-mib 60]
 # to that machine, then there:
-#   bash scripts/train_compact_gpu.sh CACHE RUN [compact-cache train flags, e.g. --steps 20000 --batch-size 512]
+#   bash scripts/train_compact_gpu.sh CACHE RUN [compact-cache train flags, e.g. --steps 5000 --batch-size 2048]
 # It prints the machine, times $THROUGHPUT_STEPS (150) training steps at each batch size of
 # $THROUGHPUT_BATCHES (default "64 512"; none with THROUGHPUT_BATCHES=""), then trains into RUN
 # (resumable: rerun the same command) and, with $OUT set, copies config.json, each checkpoint's
