@@ -199,6 +199,29 @@ def test_build_train_without_lerobot_resume_and_finish(dataset, tmp_path):
     assert twist.shape == (2, 6) and bool(torch.isfinite(twist).all())
 
 
+def test_gpu_recipe_script_trains_and_brings_the_weights_back(dataset, tmp_path):
+    """``scripts/train_compact_gpu.sh`` (the command the GPU machine runs), here with DEVICE=cpu: it
+    trains into RUN and copies the config, every checkpoint's weights and the log to $OUT."""
+    from rtv3_maniskill.policies.rtv3.compact_cache import CompactCache
+
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    out.mkdir()
+    cache.mkdir()
+    from_lerobot_dataset(dataset.root).save(cache / CACHE_FILE)
+    RTV3Config(device="cpu", num_points=N, max_grasps=M)._save_pretrained(cache)
+    assert CompactCache.load(cache / CACHE_FILE).num_frames == 29
+    script = os.path.join(os.path.dirname(__file__), "..", "scripts", "train_compact_gpu.sh")
+    env = {**os.environ, "DEVICE": "cpu", "PYTHON": sys.executable, "OUT": str(out), "THROUGHPUT_BATCHES": "4",
+           "THROUGHPUT_STEPS": "2", "OMP_NUM_THREADS": "1"}
+    result = subprocess.run(["bash", script, str(cache), str(tmp_path / "run"), "--steps", "4", "--batch-size", "4",
+                             "--save-freq", "2"], capture_output=True, text=True, env=env, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "device cpu" in result.stdout
+    assert sorted(p.name for p in out.iterdir()) == ["config.json", "logs.json", "model_000002.safetensors",
+                                                     "model_000004.safetensors"]
+    assert json.loads((out / "config.json").read_text())["type"] == "rtv3"
+
+
 def test_bad_cache_inputs_name_the_problem(tmp_path, dataset):
     from rtv3_maniskill.policies.rtv3.compact_training import train
 
