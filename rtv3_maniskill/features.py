@@ -100,6 +100,24 @@ def environment_state_dim(num_points: int, max_grasps: int) -> int:
     return num_points * 7 + max_grasps * (GRASP_DIM + 1)
 
 
+CONTEXT_MODES = ("target", "all")
+"""Which grasp candidates a policy is shown: only the episode's target (the paper's planning protocol:
+the target poses are the context) or every candidate."""
+
+
+def context_mask(grasps_mask: torch.Tensor, target: int, context: str) -> torch.Tensor:
+    """``observation.grasps_mask (B, M)`` the policy sees: only ``target`` (``"target"``) or unchanged (``"all"``)."""
+    if context not in CONTEXT_MODES:
+        raise ValueError(f"unknown context mode {context!r}; expected one of {CONTEXT_MODES}")
+    if context == "all":
+        return grasps_mask
+    if not 0 <= target < grasps_mask.shape[-1] or not bool(grasps_mask[..., target].gt(0.5).all()):
+        raise ValueError(f"target grasp {target} is not a valid candidate of the scene")
+    out = torch.zeros_like(grasps_mask)
+    out[..., target] = 1.0
+    return out
+
+
 def pack_context(
     point_cloud: torch.Tensor, point_cloud_mask: torch.Tensor, grasps: torch.Tensor, grasps_mask: torch.Tensor
 ) -> torch.Tensor:

@@ -4,7 +4,10 @@
 ``observation.state``, ``environment_state`` -> ``observation.environment_state``, ...), so
 this view hands over the 27-D state as ``agent_pos`` and the static scene context (point
 cloud + grasp set, ``features.pack_context``) as ``environment_state``. The action is the
-6-D TCP body twist (the gripper stays open); ``info["is_success"]`` is the task's success.
+6-D TCP body twist (the gripper stays open); ``info["is_success"]`` is the task's success:
+reaching the episode's target pre-grasp. So by default (``context="target"``, the planning
+benchmark's protocol) the policy is shown only that target among the candidates; with
+``context="all"`` it sees every candidate and cannot know which one the success counts.
 
     lerobot-eval --policy.path=CKPT --env.type=rtv3_clutter --eval.n_episodes=10 --eval.batch_size=1
 """
@@ -29,8 +32,13 @@ class GraspClutterLeRobotEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": features.FPS}
 
-    def __init__(self, render_mode: str | None = "rgb_array", max_episode_steps: int = 150, **task_kwargs):
+    def __init__(self, render_mode: str | None = "rgb_array", max_episode_steps: int = 150, context: str = "target",
+                 **task_kwargs):
         import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
+
+        if context not in features.CONTEXT_MODES:
+            raise ValueError(f"unknown context {context!r}; expected one of {features.CONTEXT_MODES}")
+        self.context = context
 
         self.render_mode = render_mode
         self._env = gym.make(
@@ -56,8 +64,10 @@ class GraspClutterLeRobotEnv(gym.Env):
 
     def _convert(self, obs: dict) -> dict[str, np.ndarray]:
         inputs = features.observation_from_env(obs)
+        target = int(self._env.unwrapped.target_grasp_index[0])
+        grasps_mask = features.context_mask(inputs[features.GRASPS_MASK], target, self.context)
         packed = features.pack_context(inputs[features.POINT_CLOUD], inputs[features.POINT_CLOUD_MASK],
-                                       inputs[features.GRASPS], inputs[features.GRASPS_MASK])
+                                       inputs[features.GRASPS], grasps_mask)
         return {"agent_pos": inputs[features.STATE][0].cpu().numpy(), "environment_state": packed[0].cpu().numpy()}
 
     @staticmethod
@@ -107,6 +117,9 @@ class RTV3ClutterEnvConfig(EnvConfig):
     num_points: int = 512
     """Must equal the policy's ``num_points`` (the shipped checkpoint and `rtv3 generate` use 512)."""
     max_grasps: int = features.DEFAULT_MAX_GRASPS
+    context: str = "target"
+    """Grasp candidates the policy sees: ``"target"`` (the episode's target, whose pre-grasp the success
+    counts) or ``"all"``."""
     features: dict[str, PolicyFeature] = field(default_factory=dict)
     features_map: dict[str, str] = field(
         default_factory=lambda: {
@@ -117,6 +130,8 @@ class RTV3ClutterEnvConfig(EnvConfig):
     )
 
     def __post_init__(self):
+        if self.context not in features.CONTEXT_MODES:
+            raise ValueError(f"--env.context {self.context!r}: expected one of {features.CONTEXT_MODES}")
         self.features = {
             features.ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(6,)),
             "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(features.STATE_DIM,)),
@@ -141,4 +156,5 @@ class RTV3ClutterEnvConfig(EnvConfig):
             object_source=self.object_source,
             num_points=self.num_points,
             max_grasps=self.max_grasps,
+            context=self.context,
         )

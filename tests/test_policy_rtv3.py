@@ -869,6 +869,28 @@ def test_lerobot_train_cli_trains_and_checkpoints(tmp_path):
     assert action.shape == (1, 6) and torch.isfinite(action).all()
 
 
+def test_eval_env_shows_the_policy_the_target_whose_pregrasp_counts():
+    """``lerobot-eval``'s view scores reaching the episode's target: by default the policy sees only
+    that candidate (the planning protocol); ``--env.context=all`` shows every candidate."""
+    from rtv3_maniskill.lerobot_env import GraspClutterLeRobotEnv, RTV3ClutterEnvConfig
+
+    masks = {}
+    for context in ("target", "all"):
+        env = GraspClutterLeRobotEnv(render_mode=None, context=context, num_points=64, max_grasps=8)
+        try:
+            obs, _ = env.reset(seed=3, options={"target_grasp_index": 1})
+            target = int(env._env.unwrapped.target_grasp_index[0])
+        finally:
+            env.close()
+        unpacked = ft.unpack_context(torch.from_numpy(obs["environment_state"]), 64, 8)
+        masks[context] = unpacked[ft.GRASPS_MASK]
+    assert target == 1
+    assert masks["target"].tolist() == [0.0, 1.0] + [0.0] * 6
+    assert masks["all"].sum() > 1 and masks["all"][1] == 1.0
+    with pytest.raises(ValueError, match="nearest"):
+        RTV3ClutterEnvConfig(context="nearest")
+
+
 def test_env_context_size_mismatch_names_the_sizes_and_the_eval_flags():
     """``lerobot-eval --env.type=rtv3_clutter`` with another point count / grasp count than the
     policy's: the error names the feature, both sizes and ``--env.num_points`` / ``--env.max_grasps``."""

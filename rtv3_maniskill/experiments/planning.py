@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import features, se3
-from rtv3_maniskill.features import pregrasp_poses
+from rtv3_maniskill.features import CONTEXT_MODES, context_mask, pregrasp_poses  # noqa: F401 (context_mask: API)
 from rtv3_maniskill.records import SCENE_SEED_STRIDE, RecordStore, scene_seeds, select_targets
 
 PLANNING_SUCCESS_THRESHOLD = 0.2
@@ -57,7 +57,6 @@ MAX_GRASPS_GUESS = 16
 """Progress-bar estimate of the targets per scene when every grasp is a target."""
 OUTCOMES = ("success", "collision", "timeout")
 NO_START_POSE = "no_start_pose"
-CONTEXT_MODES = ("target", "all")
 PLANNERS = ("policy", "neoss")
 POINT_CLOUD_SOURCES = ("rendered", "mesh")
 GRIPPER_OPEN = 1.0
@@ -145,19 +144,6 @@ def trial_outcome(collision: bool, success: bool) -> str | None:
 
 
 # ----------------------------------------------------------------------------- trials
-
-
-def context_mask(grasps_mask: torch.Tensor, target: int, context: str) -> torch.Tensor:
-    """``observation.grasps_mask (B, M)`` the policy sees: only ``target`` (``"target"``) or unchanged (``"all"``)."""
-    if context not in CONTEXT_MODES:
-        raise ValueError(f"unknown context mode {context!r}; expected one of {CONTEXT_MODES}")
-    if context == "all":
-        return grasps_mask
-    if not 0 <= target < grasps_mask.shape[-1] or not bool(grasps_mask[..., target].gt(0.5).all()):
-        raise ValueError(f"target grasp {target} is not a valid candidate of the scene")
-    out = torch.zeros_like(grasps_mask)
-    out[..., target] = 1.0
-    return out
 
 
 @dataclass
