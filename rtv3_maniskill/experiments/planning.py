@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import features, se3
-from rtv3_maniskill.features import CONTEXT_MODES, context_mask, pregrasp_poses  # noqa: F401 (context_mask: API)
+from rtv3_maniskill.features import CONTEXT_MODES, context_mask, pregrasp_poses
 from rtv3_maniskill.records import SCENE_SEED_STRIDE, RecordStore, scene_seeds, select_targets
 
 PLANNING_SUCCESS_THRESHOLD = 0.2
