@@ -6,8 +6,8 @@ frame's state window and its future actions. This module stores each scene conte
 of one scene share it), each episode's states and actions once, and the T - 1 states before each
 episode's first frame (its stored history: the first state repeated for a planner demonstration,
 the user's own motion before a DAgger relabel). The whole training set then fits in memory, or on
-a GPU machine that has PyTorch but not LeRobot (``compact_training.py``): a 12k-episode set is
-about 0.1 GB instead of several.
+a GPU machine that has PyTorch but not LeRobot (``compact_training.py``): 4,095 episodes take
+38 MiB in memory (33 MiB as a file) against 222 MB of the datasets' parquet files.
 
 Layout of ``cache.npz`` (E episodes, F frames, C distinct contexts):
 
