@@ -48,7 +48,7 @@ def main() -> None:
     windowed = CompactCache.load(args.cache / CACHE_FILE).windows()
     windowed.contexts_to(device)
     model = RTV3Model(SimpleNamespace(**cfg)).to(device).train()
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-5, betas=ADAM_BETAS, eps=ADAM_EPS)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-5, betas=ADAM_BETAS, eps=ADAM_EPS, fused=True)
     generator = torch.Generator().manual_seed(0)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu, {torch.get_num_threads()} threads"

@@ -169,6 +169,17 @@ def test_config_windows_presets_and_validation():
     assert cfg.translation_scale == 5.0 and cfg.kl_weight == 100.0 and cfg.kl_min == 0.07
     optimizer = cfg.get_optimizer_preset()
     assert optimizer.lr == 1e-3 and optimizer.grad_clip_norm == 1.0
+    # the fused Adam of the preset takes LeRobot's (plain) Adam steps
+    weights = [torch.randn(5, 3, requires_grad=True) for _ in range(2)]
+    plain = [w.detach().clone().requires_grad_() for w in weights]
+    fused_opt, plain_opt = optimizer.build(weights), torch.optim.Adam(plain, lr=1e-3)
+    assert fused_opt.defaults["fused"] is True
+    for step in range(3):
+        for ws, opt in ((weights, fused_opt), (plain, plain_opt)):
+            opt.zero_grad()
+            sum(((w - step) ** 2).sum() for w in ws).backward()
+            opt.step()
+    assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(weights, plain))
     scheduler = cfg.get_scheduler_preset().build(torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=1e-3), 10)
     assert scheduler.lr_lambdas[0](0) == 1.0 and scheduler.lr_lambdas[0](10**6) == pytest.approx(0.1)
     with pytest.raises(ValueError, match="num_maneuver_classes"):

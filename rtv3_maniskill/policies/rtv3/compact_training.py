@@ -46,7 +46,7 @@ MODEL_PREFIX = "model."
 STEP_KEY = "train_step"
 """``RTV3Policy``'s training-step buffer (drives the KL / logit-clip annealing)."""
 ADAM_BETAS, ADAM_EPS = (0.9, 0.999), 1e-8
-"""LeRobot's ``AdamConfig`` defaults, which ``RTV3Config.get_optimizer_preset`` keeps."""
+"""LeRobot's ``AdamConfig`` defaults, which ``RTV3Config.get_optimizer_preset`` (``RTV3AdamConfig``) keeps."""
 
 
 @dataclass
@@ -142,7 +142,7 @@ def train(cache_dir: str | Path, output_dir: str | Path, steps: int, batch_size:
     torch.manual_seed(seed)
     model = RTV3Model(SimpleNamespace(**cfg)).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg["optimizer_lr"], betas=ADAM_BETAS, eps=ADAM_EPS,
-                                 weight_decay=cfg["optimizer_weight_decay"])
+                                 weight_decay=cfg["optimizer_weight_decay"], fused=True)  # as RTV3AdamConfig
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, exponential_lr_factor(
         cfg["optimizer_lr_decay"], cfg["optimizer_min_lr"] / cfg["optimizer_lr"]))
     last = output_dir / "checkpoints" / "last"
