@@ -1,7 +1,8 @@
 #!/usr/bin/env python
 """Training-step throughput of the compact-cache trainer per batch size, and where a step's time goes.
 
-Runs the trainer's step (batch from the cache, grasp-subset augmentation, RT-V3 loss, backward, Adam)
+Runs the trainer's step (``compact_training.training_step``: batch from the cache, grasp-subset
+augmentation, RT-V3 loss, backward, Adam)
 on ``--device`` for each ``--batch-sizes``: ``--warmup`` untimed steps, then ``--steps`` timed ones
 (the device synchronised at both ends); prints samples/s and ms per step. ``--profile`` adds a
 ``torch.profiler`` table of the most expensive operators over 10 steps of the largest batch size,
@@ -24,9 +25,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from rtv3_maniskill.policies.rtv3.batch import subsample_grasps  # noqa: E402
 from rtv3_maniskill.policies.rtv3.compact_cache import CACHE_FILE, CompactCache  # noqa: E402
-from rtv3_maniskill.policies.rtv3.compact_training import ADAM_BETAS, ADAM_EPS, config_fields  # noqa: E402
+from rtv3_maniskill.policies.rtv3.compact_training import (  # noqa: E402
+    build_optimizer,
+    config_fields,
+    training_step,
+)
 from rtv3_maniskill.policies.rtv3.model import RTV3Model  # noqa: E402
 
 
@@ -48,7 +52,7 @@ def main() -> None:
     windowed = CompactCache.load(args.cache / CACHE_FILE).windows()
     windowed.contexts_to(device)
     model = RTV3Model(SimpleNamespace(**cfg)).to(device).train()
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-5, betas=ADAM_BETAS, eps=ADAM_EPS, fused=True)
+    optimizer = build_optimizer(model, cfg)
     generator = torch.Generator().manual_seed(0)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu, {torch.get_num_threads()} threads"
@@ -56,14 +60,7 @@ def main() -> None:
 
     def step(batch_size: int) -> None:
         frames = torch.randint(windowed.compact.num_frames, (batch_size,), generator=generator)
-        inputs, actions, valid, target = windowed.batch(frames, cfg["horizon"], device)
-        inputs = type(inputs)(inputs.states, subsample_grasps(inputs.context, target, cfg["grasp_subset_min"],
-                                                              cfg["grasp_subset_sizes"]))
-        loss, _ = model(inputs, actions, valid, 20000)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg["optimizer_grad_clip_norm"])
-        optimizer.step()
+        training_step(model, optimizer, windowed, frames, cfg, 20000, device)
 
     for batch_size in args.batch_sizes:
         for _ in range(args.warmup):

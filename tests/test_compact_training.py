@@ -202,8 +202,6 @@ def test_build_train_without_lerobot_resume_and_finish(dataset, tmp_path):
 def test_gpu_recipe_script_trains_and_brings_the_weights_back(dataset, tmp_path):
     """``scripts/train_compact_gpu.sh`` (the command the GPU machine runs), here with DEVICE=cpu: it
     trains into RUN and copies the config, every checkpoint's weights and the log to $OUT."""
-    from rtv3_maniskill.policies.rtv3.compact_cache import CompactCache
-
     cache, out = tmp_path / "cache", tmp_path / "out"
     out.mkdir()
     cache.mkdir()

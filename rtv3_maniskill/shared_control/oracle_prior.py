@@ -112,9 +112,9 @@ class TargetShownPrior:
         if self.target is None:
             raise RuntimeError("TargetShownPrior has no target: call set_target(index) first")
         mask = torch.as_tensor(observation[features.GRASPS_MASK])
-        if self.target >= mask.shape[-1] or not bool((mask[..., self.target] > 0.5).all()):
+        try:
+            only = features.context_mask(mask, self.target, "target")
+        except ValueError:
             raise ValueError(f"target {self.target} is not among the observation's {mask.shape[-1]} grasp candidates "
-                             "(masked out or out of range)")
-        only = torch.zeros_like(mask)
-        only[..., self.target] = 1
+                             "(masked out or out of range)") from None
         return self.policy.predict_step0_mixture({**observation, features.GRASPS_MASK: only})

@@ -37,6 +37,7 @@ from rtv3_maniskill.policies.rtv3.compact_cache import (
     CONFIG_FILE,
     INIT_WEIGHTS_FILE,
     CompactCache,
+    WindowedCache,
 )
 from rtv3_maniskill.policies.rtv3.model import RTV3Model
 from rtv3_maniskill.policies.rtv3.schedules import exponential_lr_factor
@@ -59,6 +60,28 @@ class TrainResult:
     last_loss: float
     samples_per_s: float
     checkpoint: Path
+
+
+def build_optimizer(model: RTV3Model, cfg: dict) -> torch.optim.Adam:
+    """``RTV3AdamConfig``'s optimizer (LeRobot's Adam defaults, fused) with the config's lr and weight decay."""
+    return torch.optim.Adam(model.parameters(), lr=cfg["optimizer_lr"], betas=ADAM_BETAS, eps=ADAM_EPS,
+                            weight_decay=cfg["optimizer_weight_decay"], fused=True)
+
+
+def training_step(model: RTV3Model, optimizer: torch.optim.Optimizer, windowed: WindowedCache, frames: torch.Tensor,
+                  cfg: dict, model_step: int, device: str | torch.device) -> torch.Tensor:
+    """One update on the cache's ``frames (B,)``, as ``lerobot-train`` makes it for this policy: the batch,
+    the grasp-subset augmentation (target kept), the negative ELBO at annealing step ``model_step``,
+    backward, gradient clipping, the optimizer step. Returns the loss (not synchronised)."""
+    inputs, actions, valid, target = windowed.batch(frames, cfg["horizon"], device)
+    inputs = type(inputs)(inputs.states, subsample_grasps(inputs.context, target, cfg["grasp_subset_min"],
+                                                          cfg["grasp_subset_sizes"]))
+    loss, _ = model(inputs, actions, valid, model_step)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), cfg["optimizer_grad_clip_norm"], error_if_nonfinite=False)
+    optimizer.step()
+    return loss
 
 
 def config_fields(cache_dir: Path) -> dict:
@@ -141,8 +164,7 @@ def train(cache_dir: str | Path, output_dir: str | Path, steps: int, batch_size:
         torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
     torch.manual_seed(seed)
     model = RTV3Model(SimpleNamespace(**cfg)).to(device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg["optimizer_lr"], betas=ADAM_BETAS, eps=ADAM_EPS,
-                                 weight_decay=cfg["optimizer_weight_decay"], fused=True)  # as RTV3AdamConfig
+    optimizer = build_optimizer(model, cfg)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, exponential_lr_factor(
         cfg["optimizer_lr_decay"], cfg["optimizer_min_lr"] / cfg["optimizer_lr"]))
     last = output_dir / "checkpoints" / "last"
@@ -165,7 +187,6 @@ def train(cache_dir: str | Path, output_dir: str | Path, steps: int, batch_size:
     model_step -= done  # the model's annealing step = its starting step + the steps of this run
     if done >= steps:
         return TrainResult(0, done, float("nan"), float("nan"), last)
-    grad_clip = cfg["optimizer_grad_clip_norm"]
     rates, loss_value, tick, ticked = [], float("nan"), time.perf_counter(), done
     bar = None
     if progress:
@@ -181,14 +202,7 @@ def train(cache_dir: str | Path, output_dir: str | Path, steps: int, batch_size:
             order, position = rng.permutation(compact.num_frames).tolist(), 0
         frames = torch.tensor(order[position:position + batch_size])
         epoch_state = {"order": order, "position": position + batch_size}
-        inputs, actions, valid, target = windowed.batch(frames, cfg["horizon"], device)
-        inputs = type(inputs)(inputs.states, subsample_grasps(inputs.context, target, cfg["grasp_subset_min"],
-                                                              cfg["grasp_subset_sizes"]))
-        loss, _ = model(inputs, actions, valid, model_step + step)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip, error_if_nonfinite=False)
-        optimizer.step()
+        loss = training_step(model, optimizer, windowed, frames, cfg, model_step + step, device)
         scheduler.step()
         finished = step + 1
         out_of_time = time_limit_s is not None and time.perf_counter() - started >= time_limit_s
