@@ -740,6 +740,22 @@ def test_ablation_configs_run(overrides: dict):
     assert ("point_encoder" in has) == policy.config.use_point_encoder
 
 
+@pytest.mark.parametrize("factorized", [True, False])
+def test_free_running_step_gives_the_mode_of_the_same_state(factorized: bool):
+    """The free-running decoder feeds back the state's most likely action from the heads it already
+    evaluated for the log-likelihood: the same action as ``mode_action``, outside the autograd graph."""
+    policy = make_policy(seed=12, factorized_rotation=factorized)
+    decoder, k = policy.model.decoder, policy.config.num_maneuver_classes
+    gen = torch.Generator().manual_seed(13)
+    h = torch.randn(5, decoder.gru.hidden_size, generator=gen, requires_grad=True)
+    z = torch.nn.functional.one_hot(torch.arange(5) % k, k).float()
+    actions = torch.randn(5, 6, generator=gen)
+    ll, mode = decoder._state_log_likelihood(h, z, actions, 50.0, "demonstrated", with_mode=True)
+    assert torch.equal(ll, decoder._state_log_likelihood(h, z, actions, 50.0, "demonstrated"))
+    assert torch.equal(mode, decoder.mode_action(h, z))
+    assert not mode.requires_grad and ll.requires_grad
+
+
 # ----------------------------------------------------------------------------- LeRobot integration
 
 

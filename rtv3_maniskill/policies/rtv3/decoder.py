@@ -73,16 +73,27 @@ class TrajectoryDecoder(nn.Module):
         return DecoderStart(state, torch.cat([z, self.context_proj(h0)], -1), z)
 
     def _state_log_likelihood(self, h: torch.Tensor, z: torch.Tensor, actions: torch.Tensor, clamp: float,
-                              rotation_conditioning: str = "demonstrated") -> torch.Tensor:
+                              rotation_conditioning: str = "demonstrated", with_mode: bool = False
+                              ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         """``log p(a | h, z)`` for GRU states ``h (..., hidden)`` and true actions ``(..., 6)``; each 3-D
         factor clamped at ``clamp``. The rotation factor ``p(w | h, z, v)`` is evaluated at the true v
-        (``rotation_conditioning="demonstrated"``) or at a (detached) draw ``v ~ p(v | h, z)`` (``"sampled"``)."""
+        (``rotation_conditioning="demonstrated"``) or at a (detached) draw ``v ~ p(v | h, z)`` (``"sampled"``).
+
+        ``with_mode=True`` also returns :meth:`mode_action` of the same state, detached (no autograd graph),
+        from the translation head's one evaluation."""
         if self.factorized_rotation:
             v, w = actions[..., :3], actions[..., 3:]
             trans = self.translation(h, z)
             v_cond = trans.sample().detach() if rotation_conditioning == "sampled" else v
-            return trans.log_prob(v).clamp(max=clamp) + self.rotation(h, z, v_cond).log_prob(w).clamp(max=clamp)
-        return self.joint(h, z).log_prob(actions).clamp(max=2 * clamp)
+            ll = trans.log_prob(v).clamp(max=clamp) + self.rotation(h, z, v_cond).log_prob(w).clamp(max=clamp)
+            if not with_mode:
+                return ll
+            with torch.no_grad():
+                v_mode = trans.mean.detach()
+                return ll, torch.cat([v_mode, self.rotation(h, z, v_mode).mean], -1)
+        joint = self.joint(h, z)
+        ll = joint.log_prob(actions).clamp(max=2 * clamp)
+        return (ll, joint.mean.detach()) if with_mode else ll
 
     def log_likelihood(self, start: DecoderStart, prev_action: torch.Tensor, actions: torch.Tensor,
                        clamp: float, teacher_forcing: bool = True,
@@ -104,8 +115,9 @@ class TrajectoryDecoder(nn.Module):
             state, action, out = start.state, prev_action, []
             for t in range(horizon):
                 state = self.step(start, action, state)
-                out.append(self._state_log_likelihood(state[0], start.z, actions[:, t], clamp, rotation_conditioning))
-                action = self.mode_action(state[0], start.z).detach()
+                ll, action = self._state_log_likelihood(state[0], start.z, actions[:, t], clamp,
+                                                        rotation_conditioning, with_mode=True)
+                out.append(ll)
             return torch.stack(out, 1)
         inputs_prev = torch.cat([prev_action[:, None], actions[:, :-1]], 1)
         static = start.static_input[:, None].expand(-1, horizon, -1)
