@@ -597,6 +597,45 @@ def test_missing_far_group_holds_every_axis_of_a_kind_the_user_has_used_near_the
     assert SharedControlConfig().uncommanded_axes == "missing_far_group"
 
 
+def test_missing_unused_holds_used_axes_far_from_the_scene_too():
+    """``uncommanded_axes="missing_unused_group"``: the prior fills only a kind the user has never
+    commanded. After a roll, rotation is the user's everywhere (the prior does not keep turning the hand
+    far from the scene while the user drives one translation axis); before it, it is filled as ``missing``."""
+    user = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    roll = torch.tensor([[0.27, 0.0, 0.0, 0.3, 0.0, 0.0]])  # rotation about x only
+    far = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.0),))
+    near = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.25),))
+
+    def act(axes: str, obs: dict, earlier: tuple[torch.Tensor, ...] = (roll,)) -> torch.Tensor:
+        ctrl = SharedController(HandBuiltPrior(weights=(0.7, 0.3)), SharedControlConfig(
+            uncommanded_axes=axes, adapt_user_covariance=False, belief_memory=0.0))
+        for command in earlier:
+            ctrl.step(obs, command)
+        action = ctrl.step(obs, user)[0]
+        assert ctrl.last_diagnostics.mode == "shared"
+        return action
+
+    for obs in (far, near):
+        torch.testing.assert_close(act("missing_unused_group", obs), act("zero", obs, ()))
+        torch.testing.assert_close(act("missing_unused_group", obs, ()), act("missing", obs, ()))
+    filled = act("missing_far_group", far)
+    assert filled[5] > 5 * act("missing_unused_group", far)[5].abs()  # class 1 turns about z
+    # "missing_unused": per axis far from the scene (z, never turned about, stays the prior's), by kind near it
+    assert act("missing_unused", far)[5] > 5 * act("missing_unused_group", far)[5].abs()
+    torch.testing.assert_close(act("missing_unused", near), act("zero", near, ()))
+    # a user who pushed along x and now pushes along z alone: far from the scene the prior no longer
+    # continues x under either rule, while missing_far_group leaves it to the prior there
+    ctrl_x = {}
+    for axes in ("missing_far_group", "missing_unused", "missing_unused_group"):
+        ctrl = SharedController(HandBuiltPrior(weights=(0.7, 0.3)), SharedControlConfig(
+            uncommanded_axes=axes, adapt_user_covariance=False, belief_memory=0.0))
+        ctrl.step(far, user)
+        ctrl_x[axes] = ctrl.step(far, torch.tensor([[0.0, 0.0, 0.1, 0.0, 0.0, 0.0]]))[0, 0]
+        assert ctrl.last_diagnostics.mode == "shared"
+    held = max(ctrl_x["missing_unused"].abs(), ctrl_x["missing_unused_group"].abs())
+    assert ctrl_x["missing_far_group"].abs() > 5 * held
+
+
 def test_ood_gate_hands_control_to_user_for_three_steps_then_gives_it_back():
     prior = HandBuiltPrior()
     ctrl = SharedController(prior, SharedControlConfig.preset("paper", ood_steps=3, adapt_user_covariance=False))

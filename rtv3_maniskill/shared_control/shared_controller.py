@@ -51,7 +51,8 @@ from rtv3_maniskill.twist_mixture import TwistMixture
 MODES = ("shared", "autonomous", "user_only")
 EVIDENCE_FLOOR = 20.0
 """Nats: the recursive belief never rules a class out by more than this (``belief_memory``)."""
-UNCOMMANDED_AXES = ("missing", "zero", "missing_far", "missing_far_group")
+UNCOMMANDED_AXES = ("missing", "zero", "missing_far", "missing_far_group", "missing_unused",
+                    "missing_unused_group")
 
 
 class StepZeroPrior(Protocol):
@@ -105,7 +106,14 @@ class SharedControlConfig:
     device's axes known by kind: once the user has commanded any translation (rotation) axis, every
     translation (rotation) axis is on the device, so near the scene the prior fills none of them
     (a one-axis-at-a-time user no longer has the prior turn or push the hand about the axes it has
-    not reached yet)."""
+    not reached yet); ``"missing_unused"``, that near the scene, and anywhere a zero on an axis the
+    user has commanded since ``reset()`` means "hold still" (the user has left that axis: the prior no
+    longer continues there the motion the user gave it), while axes never commanded stay the prior's
+    far from the scene; ``"missing_unused_group"``, the prior fills only the kinds the user has never
+    commanded since ``reset()``, anywhere: once the user has commanded any translation (rotation)
+    axis, a zero translation (rotation) axis means "hold still" far from the scene too (the prior
+    no longer continues, on the axis a one-axis-at-a-time user has just left, the motion the user
+    gave it)."""
     user_trans_var: float = 0.03
     """Initial S_u diagonal ((m/s)^2)."""
     user_rot_var: float = 0.1
@@ -442,11 +450,18 @@ class SharedController:
         observed = commanded
         if c.uncommanded_axes == "zero":
             observed = torch.ones_like(commanded)
-        elif c.uncommanded_axes in ("missing_far", "missing_far_group"):  # near the scene, hold still
+        elif c.uncommanded_axes != "missing":  # axes on the device hold still: near the scene, or anywhere
             used = self._commanded_axes
-            if c.uncommanded_axes == "missing_far_group":  # a kind (v or w) used once: all its axes
-                used = used.view(b, 2, 3).any(-1, keepdim=True).expand(b, 2, 3).reshape(b, 6)
-            observed = observed | (used & (dist <= c.autonomy_cutoff_distance)[:, None])
+            used_kind = used.view(b, 2, 3).any(-1, keepdim=True).expand(b, 2, 3).reshape(b, 6)
+            near = (dist <= c.autonomy_cutoff_distance)[:, None]
+            if c.uncommanded_axes == "missing_far":
+                observed = observed | (used & near)
+            elif c.uncommanded_axes == "missing_far_group":
+                observed = observed | (used_kind & near)
+            elif c.uncommanded_axes == "missing_unused":
+                observed = observed | used | (used_kind & near)
+            else:  # missing_unused_group
+                observed = observed | used_kind
 
         if not bool(no_grasps.all()):
             prior_observation = observation
