@@ -71,8 +71,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="zero axes of a user command: missing (the prior fills them in), observations of "
                              "zero velocity (zero, the paper's reading), or missing only farther than the autonomy "
                              "cutoff from the scene and zero nearer for an axis the user has used (missing_far) or "
-                             "an axis of a kind, translation or rotation, the user has used (missing_far_group, "
-                             "tuned), and zero everywhere for an axis (missing_unused) or a kind "
+                             "an axis of a kind, translation or rotation, the user has used (missing_far_group), and "
+                             "besides that zero everywhere for an axis (missing_unused, tuned) or a kind "
                              "(missing_unused_group) the user has used")
     parser.add_argument("--prior-covariance-scale", type=float, default=None,
                         help="factor on the prior's step-0 covariances before the gate and the fusion (tuned 100, "

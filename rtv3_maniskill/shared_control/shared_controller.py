@@ -6,10 +6,11 @@ Per step and batch element, one of three modes (``SharedControlDiagnostics.modes
   prior's step-0 mixture (:func:`posterior.prior_and_fused_mixtures`, which also gives the prior
   mixture, :func:`posterior.fuse_user_command` alone) and execute the mode of
   the fused mixture (:func:`posterior.mixture_mode`). The zero axes of a command are, by
-  default (``uncommanded_axes="missing_far_group"``), axes the device does not give while the EE
-  is farther than ``autonomy_cutoff_distance`` from the scene: they are not fused, so the prior
-  fills them in (a mode-switching or single-axis user); nearer, a zero axis of a kind
-  (translation or rotation) the user has commanded before means "hold still".
+  default (``uncommanded_axes="missing_unused"``), axes the device does not give, not fused, so
+  the prior fills them in (a mode-switching or single-axis user), as long as the user has never
+  commanded that axis and the EE is farther than ``autonomy_cutoff_distance`` from the scene; a
+  zero on an axis the user has commanded before, and near the scene a zero axis of a kind
+  (translation or rotation) the user has commanded before, means "hold still".
 * ``"autonomous"``: no user command (``None`` or all zeros), asynchronous mode on, and
   the EE is farther than ``autonomy_cutoff_distance`` from every scene point and from the table
   top (``table_height``; the cloud is cropped above it) -> execute
@@ -94,7 +95,7 @@ class SharedControlConfig:
     ood_dofs: str = "twist"
     """What the OOD test looks at: ``"twist"`` (translation and rotation) or ``"translation"``
     (docs/PAPER_DETAILS.md); see :func:`posterior.is_out_of_distribution`."""
-    uncommanded_axes: str = "missing_far_group"
+    uncommanded_axes: str = "missing_unused"
     """How a zero axis of a user command (``|u_i| <= input_threshold``) of a command that is not
     zero altogether is read: ``"missing"``, an axis the device does not give (a mode-switching
     or single-axis user), so neither the fusion nor the OOD test uses it and the prior fills it
@@ -102,11 +103,11 @@ class SharedControlConfig:
     ``"missing_far"``, "hold still" within ``autonomy_cutoff_distance`` of the scene if the user has
     commanded that axis since ``reset()`` (it is on the device: there, filling it is autonomy near
     clutter), missing otherwise (farther away, or an axis the device never gave, e.g. a
-    translation-only device's rotation); ``"missing_far_group"`` (the default), the same with the
+    translation-only device's rotation); ``"missing_far_group"``, the same with the
     device's axes known by kind: once the user has commanded any translation (rotation) axis, every
     translation (rotation) axis is on the device, so near the scene the prior fills none of them
     (a one-axis-at-a-time user no longer has the prior turn or push the hand about the axes it has
-    not reached yet); ``"missing_unused"``, that near the scene, and anywhere a zero on an axis the
+    not reached yet); ``"missing_unused"`` (the default), that near the scene, and anywhere a zero on an axis the
     user has commanded since ``reset()`` means "hold still" (the user has left that axis: the prior no
     longer continues there the motion the user gave it), while axes never commanded stay the prior's
     far from the scene; ``"missing_unused_group"``, the prior fills only the kinds the user has never
@@ -196,7 +197,7 @@ class SharedControlConfig:
 
 FUSION_PRESETS: dict[str, dict[str, Any]] = {
     "tuned": dict(ood_covariance="predictive", ood_alpha=0.99, belief_memory=1.0, prior_covariance_scale=100.0,
-                  uncommanded_axes="missing_far_group", goal_belief_margin=1.0),
+                  uncommanded_axes="missing_unused", goal_belief_margin=1.0),
     "paper": dict(ood_covariance="class", ood_alpha=0.85, belief_memory=0.0, prior_covariance_scale=1.0,
                   uncommanded_axes="missing", goal_belief_margin=None),
 }
