@@ -547,6 +547,18 @@ def test_prior_covariance_scale_gives_the_users_command_more_weight():
         SharedControlConfig(prior_covariance_scale=0.0)
 
 
+def shared_action_after(axes: str, obs: dict, earlier: tuple[torch.Tensor, ...], command: torch.Tensor) -> torch.Tensor:
+    """The shared ``(6,)`` action for ``command`` under ``uncommanded_axes=axes`` after the ``earlier``
+    commands (same observation; two-class hand-built prior, fixed user covariance, no belief memory)."""
+    ctrl = SharedController(HandBuiltPrior(weights=(0.7, 0.3)), SharedControlConfig(
+        uncommanded_axes=axes, adapt_user_covariance=False, belief_memory=0.0))
+    for earlier_command in earlier:
+        ctrl.step(obs, earlier_command)
+    action = ctrl.step(obs, command)[0]
+    assert ctrl.last_diagnostics.mode == "shared"
+    return action
+
+
 def test_missing_far_leaves_uncommanded_axes_to_the_prior_only_away_from_the_scene():
     """``uncommanded_axes="missing_far"``: a one-axis command's other axes are missing (the prior
     fills them) farther than the autonomy cutoff from the scene; within it an axis the user has
@@ -557,13 +569,7 @@ def test_missing_far_leaves_uncommanded_axes_to_the_prior_only_away_from_the_sce
     near = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.25),))
 
     def act(axes: str, obs: dict, earlier: tuple[torch.Tensor, ...] = ()) -> torch.Tensor:
-        ctrl = SharedController(HandBuiltPrior(weights=(0.7, 0.3)), SharedControlConfig(
-            uncommanded_axes=axes, adapt_user_covariance=False, belief_memory=0.0))
-        for command in earlier:
-            ctrl.step(obs, command)
-        action = ctrl.step(obs, user)[0]
-        assert ctrl.last_diagnostics.mode == "shared"
-        return action
+        return shared_action_after(axes, obs, earlier, user)
 
     torch.testing.assert_close(act("missing_far", far, (turn,)), act("missing", far))
     torch.testing.assert_close(act("missing_far", near), act("missing", near))  # rotation not on the device
@@ -583,12 +589,7 @@ def test_missing_far_group_holds_every_axis_of_a_kind_the_user_has_used_near_the
     near = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.25),))
 
     def act(axes: str, obs: dict) -> torch.Tensor:
-        ctrl = SharedController(HandBuiltPrior(weights=(0.7, 0.3)), SharedControlConfig(
-            uncommanded_axes=axes, adapt_user_covariance=False, belief_memory=0.0))
-        ctrl.step(obs, roll)
-        action = ctrl.step(obs, user)[0]
-        assert ctrl.last_diagnostics.mode == "shared"
-        return action
+        return shared_action_after(axes, obs, (roll,), user)
 
     torch.testing.assert_close(act("missing_far_group", far), act("missing_far", far))
     grouped, per_axis = act("missing_far_group", near), act("missing_far", near)
@@ -606,13 +607,7 @@ def test_missing_unused_holds_used_axes_far_from_the_scene_too():
     near = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.25),))
 
     def act(axes: str, obs: dict, earlier: tuple[torch.Tensor, ...] = (roll,)) -> torch.Tensor:
-        ctrl = SharedController(HandBuiltPrior(weights=(0.7, 0.3)), SharedControlConfig(
-            uncommanded_axes=axes, adapt_user_covariance=False, belief_memory=0.0))
-        for command in earlier:
-            ctrl.step(obs, command)
-        action = ctrl.step(obs, user)[0]
-        assert ctrl.last_diagnostics.mode == "shared"
-        return action
+        return shared_action_after(axes, obs, earlier, user)
 
     for obs in (far, near):
         torch.testing.assert_close(act("missing_unused_group", obs), act("zero", obs, ()))
@@ -624,13 +619,9 @@ def test_missing_unused_holds_used_axes_far_from_the_scene_too():
     torch.testing.assert_close(act("missing_unused", near), act("zero", near, ()))
     # a user who pushed along x and now pushes along z alone: far from the scene the prior no longer
     # continues x under either rule, while missing_far_group leaves it to the prior there
-    ctrl_x = {}
-    for axes in ("missing_far_group", "missing_unused", "missing_unused_group"):
-        ctrl = SharedController(HandBuiltPrior(weights=(0.7, 0.3)), SharedControlConfig(
-            uncommanded_axes=axes, adapt_user_covariance=False, belief_memory=0.0))
-        ctrl.step(far, user)
-        ctrl_x[axes] = ctrl.step(far, torch.tensor([[0.0, 0.0, 0.1, 0.0, 0.0, 0.0]]))[0, 0]
-        assert ctrl.last_diagnostics.mode == "shared"
+    push_z = torch.tensor([[0.0, 0.0, 0.1, 0.0, 0.0, 0.0]])
+    ctrl_x = {axes: shared_action_after(axes, far, (user,), push_z)[0]
+              for axes in ("missing_far_group", "missing_unused", "missing_unused_group")}
     held = max(ctrl_x["missing_unused"].abs(), ctrl_x["missing_unused_group"].abs())
     assert ctrl_x["missing_far_group"].abs() > 5 * held
     assert SharedControlConfig().uncommanded_axes == "missing_unused"
