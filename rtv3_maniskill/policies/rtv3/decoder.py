@@ -83,17 +83,16 @@ class TrajectoryDecoder(nn.Module):
         from the translation head's one evaluation."""
         if self.factorized_rotation:
             v, w = actions[..., :3], actions[..., 3:]
-            trans = self.translation(h, z)
-            v_cond = trans.sample().detach() if rotation_conditioning == "sampled" else v
-            ll = trans.log_prob(v).clamp(max=clamp) + self.rotation(h, z, v_cond).log_prob(w).clamp(max=clamp)
-            if not with_mode:
-                return ll
-            with torch.no_grad():
-                v_mode = trans.mean.detach()
-                return ll, torch.cat([v_mode, self.rotation(h, z, v_mode).mean], -1)
-        joint = self.joint(h, z)
-        ll = joint.log_prob(actions).clamp(max=2 * clamp)
-        return (ll, joint.mean.detach()) if with_mode else ll
+            head = self.translation(h, z)
+            v_cond = head.sample().detach() if rotation_conditioning == "sampled" else v
+            ll = head.log_prob(v).clamp(max=clamp) + self.rotation(h, z, v_cond).log_prob(w).clamp(max=clamp)
+        else:
+            head = self.joint(h, z)
+            ll = head.log_prob(actions).clamp(max=2 * clamp)
+        if not with_mode:
+            return ll
+        with torch.no_grad():
+            return ll, self.mode_action(h, z, head).detach()
 
     def log_likelihood(self, start: DecoderStart, prev_action: torch.Tensor, actions: torch.Tensor,
                        clamp: float, teacher_forcing: bool = True,
@@ -130,12 +129,14 @@ class TrajectoryDecoder(nn.Module):
         _, state = self.gru(torch.cat([start.static_input, prev_action], -1)[:, None], state)
         return state
 
-    def mode_action(self, h: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """Most likely action given the state: ``v = mu``, then ``w = omega(v)`` -> ``(R, 6)``."""
+    def mode_action(self, h: torch.Tensor, z: torch.Tensor, head: AxisGaussian | JointGaussian | None = None
+                    ) -> torch.Tensor:
+        """Most likely action given the state: ``v = mu``, then ``w = omega(v)`` -> ``(R, 6)``. ``head``: the
+        state's translation (factorized) or joint Gaussian where already evaluated, else computed here."""
         if self.factorized_rotation:
-            v = self.translation(h, z).mean
+            v = (head if head is not None else self.translation(h, z)).mean
             return torch.cat([v, self.rotation(h, z, v).mean], -1)
-        return self.joint(h, z).mean
+        return (head if head is not None else self.joint(h, z)).mean
 
     def rollout_mode(self, start: DecoderStart, prev_action: torch.Tensor, steps: int) -> torch.Tensor:
         """Most-likely rollout: the mode of each Gaussian fed back as a_{t-1}: ``(R, steps, 6)``."""
