@@ -268,6 +268,28 @@ def _rows(path):
         return list(csv.DictReader(f))
 
 
+def test_benchmark_in_worker_processes_gives_the_serial_results_and_resumes_either_way(tmp_path):
+    common = dict(scenes=2, users=["noisy"], methods=["direct"], seed=3, goals_per_scene=1, max_steps=30)
+    run_benchmark(BenchmarkConfig(output=tmp_path / "serial", **common), progress=False)
+    run_benchmark(BenchmarkConfig(output=tmp_path / "parallel", **common), progress=False, workers=2)
+
+    def trials(folder):
+        return sorted((r["scene_seed"], r["grasp_index"], r["outcome"], r["steps"], r["user_seed"])
+                      for r in _rows(folder / "results.csv"))
+
+    assert len(trials(tmp_path / "serial")) == 2
+    assert trials(tmp_path / "parallel") == trials(tmp_path / "serial")
+    assert sorted(map(str.split, (tmp_path / "parallel" / "goals.csv").read_text().splitlines())) == sorted(
+        map(str.split, (tmp_path / "serial" / "goals.csv").read_text().splitlines()))
+    # A serial rerun of the parallel folder, with one more method, runs only that method's trials.
+    run_benchmark(BenchmarkConfig(output=tmp_path / "parallel", **{**common, "methods": ["direct", "ho"]}),
+                  progress=False)
+    methods = [r["method"] for r in _rows(tmp_path / "parallel" / "results.csv")]
+    assert sorted(methods) == ["direct", "direct", "ho", "ho"]
+    with pytest.raises(BenchmarkError, match="workers"):
+        run_benchmark(BenchmarkConfig(output=tmp_path / "serial", **common), progress=False, workers=0)
+
+
 def test_benchmark_writes_results_and_resumes_without_duplicates(tmp_path):
     config = BenchmarkConfig(output=tmp_path, scenes=1, users=["noisy"], methods=["direct", "ho"], seed=3,
                              goals_per_scene=1, max_steps=40)

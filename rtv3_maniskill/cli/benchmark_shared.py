@@ -83,6 +83,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--safety-filter", choices=["neoss"], default=None,
                         help="put the NEO collision damper in front of every method (the paper's 'w. NeoSS' rows; "
                              "results are named METHOD+neoss)")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="run the scenes in this many processes (one core each; the results are the same as "
+                             "one process's, trial for trial)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--merge", type=Path, nargs="+", metavar="DIR", default=None,
                         help="run nothing: combine finished runs of disjoint users or methods (e.g. one process per "
@@ -141,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
             object_source=getattr(args, "objects", "procedural"),
             ho_variant=args.ho_variant, fusion=args.fusion, shared_control=shared_control_overrides(args),
         )
-        summary = run_benchmark(config, progress=not args.no_progress)
+        summary = run_benchmark(config, progress=not args.no_progress, workers=args.workers)
     except (BenchmarkError, FileNotFoundError) as err:
         raise SystemExit(f"error: {err}") from None
     print((args.output / "summary.md").read_text())

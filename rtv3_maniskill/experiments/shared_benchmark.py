@@ -26,8 +26,9 @@ the share of the oracle's gain) and puts the paper's Table II beside.
 Outputs in ``output``: ``results.csv`` (one row per trial, appended and flushed as trials
 finish; a rerun skips the finished (scene, grasp, user, method) rows), ``goals.csv``,
 ``summary.csv``, ``summary.md`` and ``success_rates.png``; ``config.json`` guards a resumed run against
-different settings. :func:`merge_runs` combines runs of disjoint users or methods made in
-parallel processes.
+different settings. ``run_benchmark(..., workers=N)`` (``--workers``) runs the scenes in N
+processes into one such folder; :func:`merge_runs` combines runs of disjoint users or methods made
+separately (e.g. on other machines).
 
 Scene ``i`` uses seed ``seed * 100000 + i`` (``rtv3 generate``'s convention; the default
 seed 9 keeps the benchmark scenes apart from training scenes made with seeds 0..8). The
@@ -44,7 +45,7 @@ import math
 import shutil
 import time
 import zlib
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -598,97 +599,197 @@ def trial_options(grasp_index: int) -> dict[str, Any]:
     return dict(target_grasp_index=int(grasp_index), init_qpos=READY_QPOS)
 
 
-def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = True) -> list[dict[str, Any]]:
-    """Run (or resume) the benchmark; returns the summary rows. ``policy`` overrides ``policy_path``."""
-    import torch
+class _SceneRunner:
+    """One process's env and assistance methods: runs the trials of one scene at a time (the whole
+    run in a serial run, one worker's share with ``workers > 1``)."""
+
+    def __init__(self, config: BenchmarkConfig, policy: Any = None) -> None:
+        import torch
+
+        from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_speed_limits, make_method
+
+        torch.set_num_threads(1)
+        self.config = config
+        if _needs_policy(config) and policy is None:
+            from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
+
+            policy = load_policy(_policy_path(config))  # clear error when missing
+        env_kwargs: dict[str, Any] = dict(obs_mode=config.obs_mode, scene_type=config.scene_type)
+        if config.object_source != "procedural":
+            env_kwargs.update(object_source=config.object_source)
+        if policy is not None:
+            env_kwargs.update(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps))
+        self.env = SharedControlEnv(rendered_context=config.rendered_context, safety_filter=config.safety_filter,
+                                    **env_kwargs)
+        self.suffix = f"+{config.safety_filter}" if config.safety_filter else ""
+        limits = controller_speed_limits(self.env.base)
+        shared_config = config.shared_control_config(*limits)
+        self.methods = {m: make_method(m, limits, policy=policy, ho_variant=config.ho_variant, config=shared_config)
+                        for m in config.methods}
+
+    def run_scene(self, scene_seed: int, checks: dict[int, str], done: set[tuple[str, ...]],
+                  on_plan: Callable[[int], None] | None = None,
+                  on_trial: Callable[[dict[str, Any]], None] | None = None) -> tuple[list[dict], list[dict]]:
+        """Every trial of scene ``scene_seed`` not in ``done`` (result keys, as ``results.csv`` holds
+        them: strings).
+
+        ``checks`` maps the grasp indices already checked to their verdict (``goals.csv``); the
+        scene's missing checks are made here. ``on_plan(n)`` hears the scene's number of trials
+        before they run, ``on_trial(row)`` each result as it finishes. Returns the new goal-check
+        rows and the result rows.
+        """
+        from rtv3_maniskill.experiments.episodes import run_episode
+        from rtv3_maniskill.experiments.goals import check_scene_goals
+        from rtv3_maniskill.shared_control.simulated_users import make_user
+
+        config, env = self.config, self.env
+        env.reset(seed=scene_seed)
+        count = int((env.base.grasps_mask[0] > 0.5).sum())
+        new_checks: list[dict[str, Any]] = []
+        if any(i not in checks for i in range(count)):  # a scene not checked yet (or only in part)
+            checks = dict(checks)
+            for i, check in enumerate(check_scene_goals(env.base, seed=scene_seed)):
+                if i not in checks:
+                    checks[i] = check
+                    new_checks.append(dict(scene_seed=scene_seed, grasp_index=i, check=check))
+        feasible = [i for i in range(count) if checks[i] == "feasible"]
+        grasps = select_targets(feasible, config.goals_per_scene, config.seed, scene_seed, salt=TARGET_SALT)
+        pregrasps = pregrasp_poses(env.base.grasp_poses[0].double())
+        if on_plan is not None:
+            on_plan(len(grasps) * len(config.users) * len(config.methods))
+        rows: list[dict[str, Any]] = []
+        for g in grasps:
+            for user_name in config.users:
+                u_seed = user_seed(config.seed, scene_seed, g, user_name)
+                for method_name, method in self.methods.items():
+                    if (str(scene_seed), str(g), user_name, method_name + self.suffix) in done:
+                        continue
+                    start = time.perf_counter()
+                    if method_name in ("oracle", "oracle_goal"):  # the prior that knows the scene
+                        method.policy.set_goals(pregrasps[feasible] if method_name == "oracle" else pregrasps[[g]])
+                    elif method_name == "rtv3_goal":  # the learned prior told the target
+                        method.policy.set_target(g)
+                    result = run_episode(env, method, make_user(user_name, u_seed), max_steps=config.max_steps,
+                                         seed=scene_seed, options=trial_options(g),
+                                         stop_on_contact=config.stop_on_contact)
+                    counts = result.mode_counts
+                    row = dict(
+                        scene_seed=scene_seed, grasp_index=g, user=user_name, method=method_name + self.suffix,
+                        outcome=result.outcome, success=int(result.success), collision=int(result.collision),
+                        steps=result.steps,
+                        final_distance=f"{result.final_distance:.4f}",
+                        autonomous_steps=counts.get("autonomous", 0), user_only_steps=counts.get("user_only", 0),
+                        user_seed=u_seed, wall_time_s=f"{time.perf_counter() - start:.2f}",
+                        qp_infeasible_steps=result.qp_infeasible_steps, contact=result.contact,
+                    )
+                    rows.append(row)
+                    if on_trial is not None:
+                        on_trial(row)
+        return new_checks, rows
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def _needs_policy(config: BenchmarkConfig) -> bool:
+    return any(m in ("rtv3", "rtv3_goal") for m in config.methods)
+
+
+def _policy_path(config: BenchmarkConfig) -> Path:
+    from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT
+
+    return Path(config.policy_path) if config.policy_path is not None else SHIPPED_CHECKPOINT
+
+
+_WORKER: dict[str, _SceneRunner] = {}
+"""The scene runner of a ``workers > 1`` process (:func:`_init_worker`)."""
+
+
+def _init_worker(config: BenchmarkConfig) -> None:
+    _WORKER["runner"] = _SceneRunner(config)
+
+
+def _run_scene_job(job: tuple[int, dict[int, str], set[tuple[str, ...]]]) -> tuple[int, list[dict], list[dict]]:
+    scene_seed, checks, done = job
+    return (scene_seed, *_WORKER["runner"].run_scene(scene_seed, checks, done))
+
+
+def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = True,
+                  workers: int = 1) -> list[dict[str, Any]]:
+    """Run (or resume) the benchmark; returns the summary rows. ``policy`` overrides ``policy_path``.
+
+    ``workers > 1`` runs scenes in that many processes (each loads the policy from
+    ``policy_path``, so ``policy`` must be None); this process alone writes ``results.csv`` and
+    ``goals.csv``, a scene's rows once the scene is done, so an interrupted run loses at most the
+    scenes in flight and the folder is the same as a serial run's (either resumes the other).
+    """
+    import multiprocessing as mp
+
     from tqdm import tqdm
 
-    from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_speed_limits, make_method, run_episode
-    from rtv3_maniskill.experiments.goals import check_scene_goals
-    from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT, load_policy
-    from rtv3_maniskill.shared_control.simulated_users import make_user
-
-    torch.set_num_threads(1)
+    if workers < 1:
+        raise BenchmarkError(f"workers must be >= 1, got {workers}")
+    if workers > 1 and policy is not None:
+        raise BenchmarkError("a policy object cannot be sent to worker processes: give policy_path with workers > 1")
     output = config.output
     output.mkdir(parents=True, exist_ok=True)
-    need_policy = any(m in ("rtv3", "rtv3_goal") for m in config.methods)
     policy_path = None
-    if need_policy and policy is None:
-        policy_path = Path(config.policy_path) if config.policy_path is not None else SHIPPED_CHECKPOINT
-        policy = load_policy(policy_path)  # clear error when missing
-    elif need_policy and config.policy_path is not None:
-        policy_path = Path(config.policy_path)
+    if _needs_policy(config) and (policy is None or config.policy_path is not None):
+        policy_path = _policy_path(config)
     fingerprint = config.fingerprint(policy_path)
     results = results_store(output, fingerprint)
     goal_checks = RecordStore(output / "goals.csv", GOAL_FIELDS, ("scene_seed", "grasp_index"),
                               {k: fingerprint[k] for k in ("seed", "scene_type", "protocol", "object_source")
                                if k in fingerprint})
+    done_by_scene: dict[int, set[tuple[str, ...]]] = {}
+    for row in results.rows:
+        done_by_scene.setdefault(int(row["scene_seed"]), set()).add(results.key(row))
+    checked: dict[int, dict[int, str]] = {}
+    for row in goal_checks.rows:
+        checked.setdefault(int(row["scene_seed"]), {})[int(row["grasp_index"])] = row["check"]
+    jobs = [(s, checked.get(s, {}), done_by_scene.get(s, set())) for s in config.scene_seeds()]
 
-    env_kwargs: dict[str, Any] = dict(obs_mode=config.obs_mode, scene_type=config.scene_type)
-    if config.object_source != "procedural":
-        env_kwargs.update(object_source=config.object_source)
-    if policy is not None:
-        env_kwargs.update(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps))
-    env = SharedControlEnv(rendered_context=config.rendered_context, safety_filter=config.safety_filter,
-                           **env_kwargs)
-    suffix = f"+{config.safety_filter}" if config.safety_filter else ""
-    limits = controller_speed_limits(env.base)
-    shared_config = config.shared_control_config(*limits)
-    methods = {m: make_method(m, limits, policy=policy, ho_variant=config.ho_variant, config=shared_config)
-               for m in config.methods}
-    per_grasp = len(config.users) * len(config.methods)
     bar = tqdm(total=0, unit="trial", disable=not progress, dynamic_ncols=True)
-    wins: dict[str, list[int]] = {m: [] for m in config.methods}
+    wins: dict[str, list[int]] = {}
+
+    def plan(trials: int) -> None:
+        bar.total += trials
+        bar.refresh()
+
+    def record(row: dict[str, Any]) -> None:
+        if (row["scene_seed"], row["grasp_index"], row["user"], row["method"]) not in results:
+            results.append(row)
+        wins.setdefault(row["method"], []).append(int(row["outcome"] == "success"))
+        bar.set_postfix({method_label(m): f"{100 * np.mean(v):.0f}%" for m, v in wins.items()})
+        bar.update(1)
+
+    runner = pool = None
     try:
-        for scene_seed in config.scene_seeds():
-            env.reset(seed=scene_seed)
-            count = int((env.base.grasps_mask[0] > 0.5).sum())
-            checks = [goal_checks.get((scene_seed, i)) for i in range(count)]
-            if any(c is None for c in checks):  # a scene not checked yet (or only in part)
-                for i, check in enumerate(check_scene_goals(env.base, seed=scene_seed)):
-                    if checks[i] is None:
-                        goal_checks.append(dict(scene_seed=scene_seed, grasp_index=i, check=check))
-                checks = [goal_checks.get((scene_seed, i)) for i in range(count)]
-            feasible = [i for i, c in enumerate(checks) if c["check"] == "feasible"]
-            grasps = select_targets(feasible, config.goals_per_scene, config.seed, scene_seed, salt=TARGET_SALT)
-            pregrasps = pregrasp_poses(env.base.grasp_poses[0].double())
-            bar.total += len(grasps) * per_grasp
-            bar.refresh()
-            for g in grasps:
-                for user_name in config.users:
-                    u_seed = user_seed(config.seed, scene_seed, g, user_name)
-                    for method_name, method in methods.items():
-                        key = (scene_seed, g, user_name, method_name + suffix)
-                        if key in results:
-                            bar.update(1)
-                            continue
-                        start = time.perf_counter()
-                        if method_name in ("oracle", "oracle_goal"):  # the prior that knows the scene
-                            method.policy.set_goals(pregrasps[feasible] if method_name == "oracle" else pregrasps[[g]])
-                        elif method_name == "rtv3_goal":  # the learned prior told the target
-                            method.policy.set_target(g)
-                        result = run_episode(
-                            env, method, make_user(user_name, u_seed), max_steps=config.max_steps, seed=scene_seed,
-                            options=trial_options(g),
-                            stop_on_contact=config.stop_on_contact,
-                        )
-                        counts = result.mode_counts
-                        results.append(dict(
-                            scene_seed=scene_seed, grasp_index=g, user=user_name, method=method_name + suffix,
-                            outcome=result.outcome, success=int(result.success), collision=int(result.collision),
-                            steps=result.steps,
-                            final_distance=f"{result.final_distance:.4f}",
-                            autonomous_steps=counts.get("autonomous", 0), user_only_steps=counts.get("user_only", 0),
-                            user_seed=u_seed, wall_time_s=f"{time.perf_counter() - start:.2f}",
-                            qp_infeasible_steps=result.qp_infeasible_steps, contact=result.contact,
-                        ))
-                        wins[method_name].append(int(result.outcome == "success"))
-                        bar.set_postfix({method_label(m): f"{100 * np.mean(v):.0f}%"
-                                         for m, v in wins.items() if v})
-                        bar.update(1)
+        if workers == 1:
+            runner = _SceneRunner(config, policy)
+            for scene_seed, checks, done in jobs:
+                new_checks, _ = runner.run_scene(scene_seed, checks, done, on_plan=plan, on_trial=record)
+                for row in new_checks:
+                    goal_checks.append(row)
+                bar.update(len(done))  # the scene's trials finished in an earlier run
+        else:
+            pool = mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_init_worker, initargs=(config,))
+            bar.total = sum(len(done) for _, _, done in jobs)
+            bar.update(bar.total)
+            for _, new_checks, rows in pool.imap_unordered(_run_scene_job, jobs):
+                for row in new_checks:
+                    goal_checks.append(row)
+                plan(len(rows))
+                for row in rows:
+                    record(row)
+            pool.close()
+            pool.join()
     finally:
+        if pool is not None:
+            pool.terminate()
+        if runner is not None:
+            runner.close()
         bar.close()
         results.close()
         goal_checks.close()
-        env.close()
     return write_summaries(output, config.users, config.methods)
