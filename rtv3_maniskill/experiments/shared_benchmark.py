@@ -94,6 +94,9 @@ TARGET_SALT = 17
 RESULT_KEY = ("scene_seed", "grasp_index", "user", "method")
 _SPEED_LIMIT_FIELDS = ("max_linear_speed", "max_angular_speed")
 """SharedControlConfig fields the benchmark takes from the env's controller, not from its settings."""
+_LATER_SHARED_CONTROL_FIELDS = {"goal_belief_axes": "observed"}
+"""SharedControlConfig fields added after runs were made, with the value those runs had: left out of
+the fingerprint at that value, so that those runs still resume and merge."""
 
 
 class BenchmarkError(ValueError):
@@ -191,6 +194,9 @@ class BenchmarkConfig:
         settings = dataclasses.asdict(self.shared_control_config(0.3, 1.2))
         for key in _SPEED_LIMIT_FIELDS:
             settings.pop(key)
+        for key, value in _LATER_SHARED_CONTROL_FIELDS.items():
+            if settings[key] == value:
+                settings.pop(key)
         return settings
 
     @property
@@ -337,12 +343,13 @@ def oracle_gain_share(rows: Iterable[dict[str, Any]], baseline: str = "direct", 
     three ran (same user noise; a method behind a safety filter with the baseline and ceiling behind
     the same filter), with a 95 % paired bootstrap interval: goals resampled with replacement
     ``resamples`` times, a resample where the ceiling does not beat the baseline left out (the share
-    is undefined there). Users where the ceiling does not beat the baseline get no entry.
+    is undefined there). Users where the ceiling does not beat the baseline get no entry. Each (user,
+    method) draws its resamples from its own stream of ``seed``, so its interval does not depend on
+    which other users and methods the rows hold (a merged folder gives a part's intervals again).
 
     Returns ``{(user, method): dict(goals, baseline_SR, SR, ceiling_SR, share, share_low, share_high)}``
     (SR in %, share as a fraction; the interval None if fewer than half of the resamples count)."""
     outcome = _success_by_trial(rows)
-    rng = np.random.default_rng(seed)
     out = {}
     for (user, method), trials in sorted(outcome.items()):
         if method in (_behind_same_filter(baseline, method), _behind_same_filter(ceiling, method)):
@@ -357,6 +364,7 @@ def oracle_gain_share(rows: Iterable[dict[str, Any]], baseline: str = "direct", 
         m, b, c = (np.array([d[k] for k in common], dtype=float) for d in (trials, base, top))
         if c.mean() <= b.mean():
             continue
+        rng = np.random.default_rng([seed, zlib.crc32(user.encode()), zlib.crc32(method.encode())])
         idx = rng.integers(0, len(common), size=(resamples, len(common)))
         gain, top_gain = m[idx].mean(1) - b[idx].mean(1), c[idx].mean(1) - b[idx].mean(1)
         counted = top_gain > 0
@@ -749,7 +757,9 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
         checked.setdefault(int(row["scene_seed"]), {})[int(row["grasp_index"])] = row["check"]
     jobs = [(s, checked.get(s, {}), done_by_scene.get(s, set())) for s in config.scene_seeds()]
 
-    bar = tqdm(total=0, unit="trial", disable=not progress, dynamic_ncols=True)
+    # One process: a bar over trials (their number known scene by scene); several: over scenes.
+    bar = tqdm(total=0 if workers == 1 else len(jobs), unit="trial" if workers == 1 else "scene",
+               disable=not progress, dynamic_ncols=True)
     wins: dict[str, list[int]] = {}
 
     def plan(trials: int) -> None:
@@ -761,27 +771,25 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
             results.append(row)
         wins.setdefault(row["method"], []).append(int(row["outcome"] == "success"))
         bar.set_postfix({method_label(m): f"{100 * np.mean(v):.0f}%" for m, v in wins.items()})
-        bar.update(1)
 
     runner = pool = None
     try:
         if workers == 1:
             runner = _SceneRunner(config, policy)
             for scene_seed, checks, done in jobs:
-                new_checks, _ = runner.run_scene(scene_seed, checks, done, on_plan=plan, on_trial=record)
+                new_checks, _ = runner.run_scene(scene_seed, checks, done, on_plan=plan,
+                                                 on_trial=lambda row: (record(row), bar.update(1)))
                 for row in new_checks:
                     goal_checks.append(row)
                 bar.update(len(done))  # the scene's trials finished in an earlier run
         else:
             pool = mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_init_worker, initargs=(config,))
-            bar.total = sum(len(done) for _, _, done in jobs)
-            bar.update(bar.total)
             for _, new_checks, rows in pool.imap_unordered(_run_scene_job, jobs):
                 for row in new_checks:
                     goal_checks.append(row)
-                plan(len(rows))
                 for row in rows:
                     record(row)
+                bar.update(1)
             pool.close()
             pool.join()
     finally:
