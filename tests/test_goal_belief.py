@@ -113,30 +113,9 @@ def test_the_controller_hands_its_prior_the_candidates_the_belief_keeps(margin):
     torch.testing.assert_close(prior.masks[-1], full)
 
 
-@pytest.mark.parametrize(("axes", "kept"), [("commanded", [0.0, 0.0, 1.0, 0.0, 0.0]),
-                                           ("observed", [0.0, 1.0, 0.0, 0.0, 0.0])])
-def test_a_one_axis_user_who_leaves_an_axis_keeps_the_goal_it_drove_to_when_the_belief_reads_commanded_axes(
-        axes, kept):
-    """A one-axis user drives along x towards the candidate 10 cm to the side, then presses z (down)
-    alone. The fusion holds x still from then on (``missing_unused``); read as an observation, that
-    zero points the belief at the candidate straight below, which the user has moved away from.
-    Read from the moved axes only, the z presses (every candidate lies as far down) leave the
-    belief where the x presses put it."""
-    prior = RecordingPrior()
-    ctrl = SharedController(prior, SharedControlConfig(goal_belief_margin=1.0, goal_belief_axes=axes,
-                                                       prior_covariance_scale=1.0, adapt_user_covariance=False))
-    along_x = torch.tensor([[0.1, 0.0, 0.0, 0.0, 0.0, 0.0]])
-    down = torch.tensor([[0.0, 0.0, 0.12, 0.0, 0.0, 0.0]])  # body z points down
-    for command in [along_x] * 10 + [down] * 20:
-        ctrl.step(observation_at(START), command)
-    assert prior.masks[-1].tolist() == [kept]
-
-
 def test_bad_settings_are_named():
     with pytest.raises(ValueError, match="goal_belief_margin"):
         SharedControlConfig(goal_belief_margin=0.0)
-    with pytest.raises(ValueError, match="goal_belief_axes"):
-        SharedControlConfig(goal_belief_axes="pressed")
     with pytest.raises(ValueError, match="margin"):
         GoalBelief(margin=-1.0)
     belief = GoalBelief(margin=1.0)

@@ -80,9 +80,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--goal-belief-margin", type=_margin, default=None, metavar="NATS|off",
                         help="RT-V3 hands its prior only the grasp candidates within NATS of the most likely goal "
                              "under a recursive belief over the candidates (tuned 1); off: every candidate (paper)")
-    parser.add_argument("--goal-belief-axes", choices=["observed", "commanded"], default=None,
-                        help="the axes of a command the belief over the candidates reads: those the fusion "
-                             "observes, zeros held still included (observed), or those the command moves (commanded)")
     parser.add_argument("--safety-filter", choices=["neoss"], default=None,
                         help="put the NEO collision damper in front of every method (the paper's 'w. NeoSS' rows; "
                              "results are named METHOD+neoss)")
@@ -113,7 +110,7 @@ def shared_control_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return {
         key: (None if value == "off" else value)
         for key in ("ood_alpha", "ood_covariance", "ood_dofs", "uncommanded_axes", "prior_covariance_scale",
-                    "goal_belief_margin", "goal_belief_axes")
+                    "goal_belief_margin")
         if (value := getattr(args, key, None)) is not None
     }
 

@@ -94,9 +94,6 @@ TARGET_SALT = 17
 RESULT_KEY = ("scene_seed", "grasp_index", "user", "method")
 _SPEED_LIMIT_FIELDS = ("max_linear_speed", "max_angular_speed")
 """SharedControlConfig fields the benchmark takes from the env's controller, not from its settings."""
-_LATER_SHARED_CONTROL_FIELDS = {"goal_belief_axes": "observed"}
-"""SharedControlConfig fields added after runs were made, with the value those runs had: left out of
-the fingerprint at that value, so that those runs still resume and merge."""
 
 
 class BenchmarkError(ValueError):
@@ -194,9 +191,6 @@ class BenchmarkConfig:
         settings = dataclasses.asdict(self.shared_control_config(0.3, 1.2))
         for key in _SPEED_LIMIT_FIELDS:
             settings.pop(key)
-        for key, value in _LATER_SHARED_CONTROL_FIELDS.items():
-            if settings[key] == value:
-                settings.pop(key)
         return settings
 
     @property

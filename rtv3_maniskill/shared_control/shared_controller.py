@@ -54,7 +54,6 @@ EVIDENCE_FLOOR = 20.0
 """Nats: the recursive belief never rules a class out by more than this (``belief_memory``)."""
 UNCOMMANDED_AXES = ("missing", "zero", "missing_far", "missing_far_group", "missing_unused",
                     "missing_unused_group")
-GOAL_BELIEF_AXES = ("observed", "commanded")
 
 
 class StepZeroPrior(Protocol):
@@ -140,12 +139,6 @@ class SharedControlConfig:
     and hands the prior only the candidates within this many nats of the most likely one. 1 was
     chosen on validation goals (it lifts a translation-only user most: the prior then turns the
     hand towards the grasp the user drives to)."""
-    goal_belief_axes: str = "observed"
-    """The axes of a command the goal belief reads: ``"observed"``, those the fusion treats as
-    observations (``uncommanded_axes``: a zero on an axis held still counts as "velocity 0 towards
-    the goal"), or ``"commanded"``, only the axes the command moves (a one-axis user's zero on the
-    axis it has left says that axis is no longer the one to press, not that the goal lies level
-    with the hand there)."""
     prior_covariance_scale: float = 100.0
     """Factor on the prior's step-0 covariances (Sigma_z and Gamma_z) before the gate and the
     fusion. 1 (the paper) takes the prior as calibrated; a learned prior is calibrated on its
@@ -198,8 +191,6 @@ class SharedControlConfig:
         if self.goal_belief_margin is not None and not (math.isfinite(self.goal_belief_margin)
                                                         and self.goal_belief_margin > 0):
             raise ValueError(f"goal_belief_margin must be None or a finite number > 0, got {self.goal_belief_margin}")
-        if self.goal_belief_axes not in GOAL_BELIEF_AXES:
-            raise ValueError(f"goal_belief_axes must be one of {GOAL_BELIEF_AXES}, got {self.goal_belief_axes!r}")
         if not (math.isfinite(self.prior_covariance_scale) and self.prior_covariance_scale > 0):
             raise ValueError(f"prior_covariance_scale must be a finite number > 0, got {self.prior_covariance_scale}")
 
@@ -476,8 +467,7 @@ class SharedController:
         if not bool(no_grasps.all()):
             prior_observation = observation
             if self._goal_belief is not None and grasps_mask is not None and features.GRASPS in observation:
-                belief_axes = commanded if c.goal_belief_axes == "commanded" else observed
-                self._goal_belief.update(observation, user, active & ~no_grasps, belief_axes, s_u, g_u)
+                self._goal_belief.update(observation, user, active & ~no_grasps, observed, s_u, g_u)
                 kept = self._goal_belief.kept(grasps_mask)
                 prior_observation = {**observation, features.GRASPS_MASK: kept}
                 shown_grasps = kept.reshape(b, -1) > 0.5
