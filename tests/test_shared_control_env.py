@@ -258,8 +258,8 @@ def test_share_of_the_oracles_gain_is_computed_on_the_goals_all_three_ran():
     assert s["share"] == pytest.approx(0.5)
     assert s["share_low"] < 0.5 < s["share_high"] <= 1.0  # RT-V3 never beats the oracle on these goals
     # The interval is the same with another method's rows beside (a merged folder, a part of one).
-    hoisted = rows + [row(g, "noisy", "ho", g < 12) for g in range(20)]
-    assert oracle_gain_share(hoisted, resamples=500)[("noisy", "rtv3")] == s
+    with_ho = rows + [row(g, "noisy", "ho", g < 12) for g in range(20)]
+    assert oracle_gain_share(with_ho, resamples=500)[("noisy", "rtv3")] == s
     by_method = {(x["user"], x["method"]): x for x in summarize(rows)}
     assert by_method[("noisy", "rtv3")]["oracle_gain_share"] == pytest.approx(0.5)
     assert by_method[("laggy", "rtv3")]["oracle_gain_share"] is None

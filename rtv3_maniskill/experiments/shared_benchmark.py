@@ -711,9 +711,8 @@ def _init_worker(config: BenchmarkConfig) -> None:
     _WORKER["runner"] = _SceneRunner(config)
 
 
-def _run_scene_job(job: tuple[int, dict[int, str], set[tuple[str, ...]]]) -> tuple[int, list[dict], list[dict]]:
-    scene_seed, checks, done = job
-    return (scene_seed, *_WORKER["runner"].run_scene(scene_seed, checks, done))
+def _run_scene_job(job: tuple[int, dict[int, str], set[tuple[str, ...]]]) -> tuple[list[dict], list[dict]]:
+    return _WORKER["runner"].run_scene(*job)
 
 
 def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = True,
@@ -761,24 +760,26 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
         bar.refresh()
 
     def record(row: dict[str, Any]) -> None:
-        if (row["scene_seed"], row["grasp_index"], row["user"], row["method"]) not in results:
-            results.append(row)
+        results.append(row)
         wins.setdefault(row["method"], []).append(int(row["outcome"] == "success"))
         bar.set_postfix({method_label(m): f"{100 * np.mean(v):.0f}%" for m, v in wins.items()})
+
+    def record_trial(row: dict[str, Any]) -> None:
+        record(row)
+        bar.update(1)
 
     runner = pool = None
     try:
         if workers == 1:
             runner = _SceneRunner(config, policy)
             for scene_seed, checks, done in jobs:
-                new_checks, _ = runner.run_scene(scene_seed, checks, done, on_plan=plan,
-                                                 on_trial=lambda row: (record(row), bar.update(1)))
+                new_checks, _ = runner.run_scene(scene_seed, checks, done, on_plan=plan, on_trial=record_trial)
                 for row in new_checks:
                     goal_checks.append(row)
                 bar.update(len(done))  # the scene's trials finished in an earlier run
         else:
             pool = mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_init_worker, initargs=(config,))
-            for _, new_checks, rows in pool.imap_unordered(_run_scene_job, jobs):
+            for new_checks, rows in pool.imap_unordered(_run_scene_job, jobs):
                 for row in new_checks:
                     goal_checks.append(row)
                 for row in rows:
