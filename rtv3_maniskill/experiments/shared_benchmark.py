@@ -630,15 +630,16 @@ class _SceneRunner:
                         for m in config.methods}
 
     def run_scene(self, scene_seed: int, checks: dict[int, str], done: set[tuple[str, ...]],
+                  on_checks: Callable[[list[dict[str, Any]]], None] | None = None,
                   on_plan: Callable[[int], None] | None = None,
                   on_trial: Callable[[dict[str, Any]], None] | None = None) -> tuple[list[dict], list[dict]]:
         """Every trial of scene ``scene_seed`` not in ``done`` (result keys, as ``results.csv`` holds
         them: strings).
 
         ``checks`` maps the grasp indices already checked to their verdict (``goals.csv``); the
-        scene's missing checks are made here. ``on_plan(n)`` hears the scene's number of trials
-        before they run, ``on_trial(row)`` each result as it finishes. Returns the new goal-check
-        rows and the result rows.
+        scene's missing checks are made here; ``on_checks(rows)`` hears them before any trial runs,
+        ``on_plan(n)`` the scene's number of trials, ``on_trial(row)`` each result as it finishes.
+        Returns the new goal-check rows and the result rows.
         """
         from rtv3_maniskill.experiments.episodes import run_episode
         from rtv3_maniskill.experiments.goals import check_scene_goals
@@ -654,6 +655,8 @@ class _SceneRunner:
                 if i not in checks:
                     checks[i] = check
                     new_checks.append(dict(scene_seed=scene_seed, grasp_index=i, check=check))
+        if on_checks is not None:
+            on_checks(new_checks)
         feasible = [i for i in range(count) if checks[i] == "feasible"]
         grasps = select_targets(feasible, config.goals_per_scene, config.seed, scene_seed, salt=TARGET_SALT)
         pregrasps = pregrasp_poses(env.base.grasp_poses[0].double())
@@ -768,20 +771,21 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
         record(row)
         bar.update(1)
 
+    def record_checks(rows: list[dict[str, Any]]) -> None:
+        for row in rows:
+            goal_checks.append(row)
+
     runner = pool = None
     try:
         if workers == 1:
             runner = _SceneRunner(config, policy)
             for scene_seed, checks, done in jobs:
-                new_checks, _ = runner.run_scene(scene_seed, checks, done, on_plan=plan, on_trial=record_trial)
-                for row in new_checks:
-                    goal_checks.append(row)
+                runner.run_scene(scene_seed, checks, done, on_checks=record_checks, on_plan=plan, on_trial=record_trial)
                 bar.update(len(done))  # the scene's trials finished in an earlier run
         else:
             pool = mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_init_worker, initargs=(config,))
             for new_checks, rows in pool.imap_unordered(_run_scene_job, jobs):
-                for row in new_checks:
-                    goal_checks.append(row)
+                record_checks(new_checks)
                 for row in rows:
                     record(row)
                 bar.update(1)
