@@ -11,6 +11,9 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
+from rtv3_maniskill.presets import GOAL_RULES, get_preset
+
 
 def _names(text: str) -> list[str]:
     return [part.strip() for part in text.split(",") if part.strip()]
@@ -45,10 +48,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh-context", action="store_true",
                         help="state_dict mode: use the mesh-sampled scene cloud instead of rendering it once per "
                              "scene from the depth camera (the default, as `rtv3 generate` stores it)")
-    parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
-    parser.add_argument("--objects", default="procedural",
-                        help="object source: 'procedural', 'random_urdfs' (pybullet's random objects), "
-                             "'procedural+random_urdfs' or a folder of meshes")
+    add_scene_arguments(parser)
+    parser.add_argument("--goals", choices=GOAL_RULES, default=None,
+                        help="goal rule (default: the preset's): all (every floating-hand-feasible grasp, the "
+                             "authors' rule; paper) or reachable (only grasps the arm can reach without contact; "
+                             "easy); goals.csv and summary.md count both")
     parser.add_argument("--ho-variant", default="rtv3_authors",
                         choices=["rtv3_authors", "rtv3_authors_public", "javdani2018"],
                         help="HO constants: the RT-V3 paper's translation-only baseline, our reading of the "
@@ -140,9 +144,9 @@ def run(args: argparse.Namespace) -> int:
             output=args.output, policy_path=args.policy_path, scenes=args.scenes, users=users, methods=methods,
             seed=args.seed, goals_per_scene=args.goals_per_scene, max_steps=args.max_steps,
             stop_on_contact=not args.continue_after_contact, safety_filter=args.safety_filter,
-            obs_mode=args.obs_mode, rendered_context=not args.mesh_context, scene_type=args.scene_type,
-            object_source=getattr(args, "objects", "procedural"),
-            ho_variant=args.ho_variant, fusion=args.fusion, shared_control=shared_control_overrides(args),
+            obs_mode=args.obs_mode, rendered_context=not args.mesh_context, **scene_settings(args),
+            goals=args.goals or get_preset(args.preset).goals, ho_variant=args.ho_variant, fusion=args.fusion,
+            shared_control=shared_control_overrides(args),
         )
         summary = run_benchmark(config, progress=not args.no_progress, workers=args.workers)
     except (BenchmarkError, FileNotFoundError) as err:

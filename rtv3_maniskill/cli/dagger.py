@@ -9,6 +9,8 @@ import argparse
 import json
 from pathlib import Path
 
+from rtv3_maniskill.cli.scene_args import add_scene_arguments, resolve_scene_arguments
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from rtv3_maniskill.experiments.dagger import DEFAULT_DRIVERS, FAILURE_WINDOW_STEPS
@@ -26,14 +28,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--failure-relabels", type=int, default=0,
                         help=f"states re-planned from the last {FAILURE_WINDOW_STEPS} steps of a failed rollout "
                              "instead (0: spread like the others)")
-    parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
-    parser.add_argument("--objects", default="procedural")
+    add_scene_arguments(parser)
     parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")
     parser.add_argument("--workers", type=int, default=1, help="parallel CPU worker processes")
 
 
 def run(args: argparse.Namespace) -> int:
     from rtv3_maniskill.experiments.dagger import DaggerConfig, run_dagger
+
+    resolve_scene_arguments(args)
 
     if args.policy_path is not None and not (args.policy_path / "config.json").is_file():
         raise SystemExit(f"error: --policy.path {args.policy_path} holds no config.json (a pretrained_model folder)")
@@ -43,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
             drivers=tuple(d for d in args.drivers.split(",") if d.strip()),
             targets_per_scene=args.targets_per_scene or None, relabels_per_rollout=args.relabels_per_rollout,
             failure_relabels=args.failure_relabels,
-            scene_type=args.scene_type, objects=args.objects, plan_timeout=args.plan_timeout, workers=args.workers)
+            scene_type=args.scene_type, objects=args.objects, execution=args.execution,
+            self_contacts=args.self_contacts, plan_timeout=args.plan_timeout, workers=args.workers)
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     if not config.output.parent.is_dir():

@@ -15,6 +15,8 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
+
 if TYPE_CHECKING:
     import numpy as np
 
@@ -45,10 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--target-grasp", type=int, default=None,
                         help="index of the target grasp (default: the episode's own draw)")
     parser.add_argument("--max-steps", type=int, default=150, help="control steps (20 Hz)")
-    parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
-    parser.add_argument("--objects", default="procedural",
-                        help="'procedural', 'random_urdfs' (pybullet's meshes), 'procedural+random_urdfs' "
-                             "or a folder of meshes")
+    add_scene_arguments(parser, default_preset="paper")
     parser.add_argument("--output", type=Path, default=Path("outputs/demo"), help="folder for demo.mp4 and demo.png")
     parser.add_argument("--no-video", action="store_true", help="skip rendering the video")
     parser.add_argument("--fusion", choices=["tuned", "paper"], default="tuned",
@@ -234,7 +233,7 @@ def run(args: argparse.Namespace) -> int:
     args.output.mkdir(parents=True, exist_ok=True)
 
     env_kwargs = dict(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps),
-                      scene_type=args.scene_type, object_source=args.objects, safety_filter=args.safety_filter)
+                      safety_filter=args.safety_filter, **scene_settings(args))
     env, can_render = _make_env(not args.no_video, env_kwargs)
     options = {} if args.target_grasp is None else dict(target_grasp_index=args.target_grasp)
     try:

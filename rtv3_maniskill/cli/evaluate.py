@@ -14,6 +14,8 @@ import argparse
 import json
 from pathlib import Path
 
+from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
+
 
 def _seed_range(text: str) -> tuple[int, int]:
     from rtv3_maniskill.experiments.prediction import parse_seed_range
@@ -68,7 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="grasps the policy sees: only the trial's target (paper) or every candidate (success = any)")
     plan.add_argument("--point-cloud", default="rendered", choices=["rendered", "mesh"],
                       help="scene cloud source; match the training data (rtv3 generate --context)")
-    plan.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
+    add_scene_arguments(plan)
     plan.add_argument("--max-steps", type=int, default=150, help="steps before a timeout (150 = 7.5 s)")
     plan.add_argument("--output", type=Path, default=Path("outputs/planning"), help="results folder")
     plan.set_defaults(_evaluate=_run_planning)
@@ -101,7 +103,7 @@ def _run_planning(args: argparse.Namespace) -> int:
         config = PlanningConfig(
             output=args.output, policy_path=args.policy_path, scenes=args.scenes, seed=args.seed,
             max_grasps_per_scene=None if args.max_grasps_per_scene == 0 else args.max_grasps_per_scene,
-            context=args.context, point_cloud=args.point_cloud, scene_type=args.scene_type, max_steps=args.max_steps,
+            context=args.context, point_cloud=args.point_cloud, **scene_settings(args), max_steps=args.max_steps,
             planner=args.planner,
         )
         summary = run_planning_benchmark(config)

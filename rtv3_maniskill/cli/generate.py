@@ -12,16 +12,15 @@ import time
 from collections import Counter
 from pathlib import Path
 
+from rtv3_maniskill.cli.scene_args import add_scene_arguments, resolve_scene_arguments
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-scenes", type=int, required=True, help="clutter scenes to draw")
     parser.add_argument("--output", type=Path, required=True, help="dataset folder (LeRobot root)")
     parser.add_argument("--seed", type=int, default=0, help="scene i uses seed SEED*100000 + i")
     parser.add_argument("--workers", type=int, default=1, help="parallel CPU worker processes")
-    parser.add_argument("--scene-type", default="mixed", choices=["pile", "packed", "mixed"])
-    parser.add_argument("--objects", default="procedural",
-                        help="'procedural', 'random_urdfs' (pybullet's meshes), 'procedural+random_urdfs' "
-                             "or a folder of meshes")
+    add_scene_arguments(parser, execution=False)
     parser.add_argument("--grasps-per-scene", type=int, default=None, help="cap on targets per scene (default all)")
     parser.add_argument("--num-points", type=int, default=512,
                         help="points per stored cloud (rendered workspace clouds at 7.5 mm hold ~150-450)")
@@ -138,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
     from rtv3_maniskill.datasets.lerobot_export import StagedEpisodeError, StagingArea, export_lerobot_dataset
     from rtv3_maniskill.records import scene_seeds
 
+    resolve_scene_arguments(args)
     _validate(args)
     args.output = args.output.expanduser().absolute()
     try:  # refuses a folder with attempts made under other settings (not one whose run failed before any)

@@ -5,14 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from rtv3_maniskill.cli.scene_args import add_scene_arguments, resolve_scene_arguments
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="scene seed (same seed, same scene)")
-    parser.add_argument("--scene-type", default="pile", choices=["pile", "packed", "mixed"])
-    parser.add_argument("--num-objects", type=int, default=None, help="objects (default: Poisson(4)+1)")
-    parser.add_argument("--objects", default="procedural",
-                        help="'procedural', 'random_urdfs' (pybullet's meshes), 'procedural+random_urdfs' "
-                             "or a folder of .obj/.stl/.glb meshes")
+    add_scene_arguments(parser, default_preset="paper", execution=False)
+    parser.add_argument("--num-objects", type=int, default=None,
+                        help="objects (default: Poisson(4)+1; 4 requested for packed_ycb)")
     parser.add_argument("--output", type=Path, default=Path("outputs/scene.png"), help="PNG to write")
 
 
@@ -23,6 +23,7 @@ def run(args: argparse.Namespace) -> int:
     import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
     from rtv3_maniskill.visualization import save_scene_figure
 
+    resolve_scene_arguments(args)
     if not args.output.parent.exists():
         args.output.parent.mkdir(parents=True)
     env = gym.make(

@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", default="rtv3", choices=["rtv3", "direct", "ho"], help="assistance method")
@@ -24,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--headless", action="store_true", help="no window (simulated input only)")
     parser.add_argument("--realtime", choices=["auto", "on", "off"], default="auto",
                         help="pace at 20 Hz (auto: on for a person, off for a simulated user)")
-    parser.add_argument("--scene-type", default="pile", choices=["pile", "packed", "mixed"])
+    add_scene_arguments(parser, default_preset="paper")
     parser.add_argument("--target-grasp", type=int, default=None, help="target grasp index (default: drawn)")
     parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
                         help="RT-V3 checkpoint folder (default: the bundled one)")
@@ -47,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         method=args.method, input=args.input, scene_seed=args.scene_seed, trials=args.trials,
         participant=args.participant, record=args.record, headless=args.headless,
         realtime=None if args.realtime == "auto" else args.realtime == "on", policy_path=args.policy_path,
-        scene_type=args.scene_type, target_grasp=args.target_grasp, user_seed=args.user_seed,
+        **scene_settings(args), target_grasp=args.target_grasp, user_seed=args.user_seed,
         screenshot=args.screenshot, screenshot_step=args.screenshot_step,
         trial_config=TrialConfig(timeout_s=args.timeout),
     )

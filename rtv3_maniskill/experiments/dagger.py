@@ -101,6 +101,10 @@ class DaggerConfig:
     plan_timeout: float = 3.0
     scene_type: str = "mixed"
     objects: str = "procedural"
+    execution: str = "capped"
+    """How the rollouts' env executes twists (``rtv3_maniskill.presets.EXECUTIONS``)."""
+    self_contacts: bool = True
+    """Whether a robot self contact ends a rollout as a collision."""
     workers: int = 1
 
     def __post_init__(self) -> None:
@@ -126,7 +130,10 @@ class DaggerConfig:
                     objects=self.objects, num_points=num_points, max_grasps=max_grasps, context="rendered",
                     end_at="pregrasp", drivers=list(self.drivers), targets_per_scene=self.targets_per_scene,
                     relabels_per_rollout=self.relabels_per_rollout, failure_relabels=self.failure_relabels,
-                    min_step=self.min_step, max_steps=self.max_steps, policy=str(self.policy_path or "shipped"))
+                    min_step=self.min_step, max_steps=self.max_steps, policy=str(self.policy_path or "shipped"),
+                    # Only when set, so that rounds made before these options existed still resume.
+                    **({"execution": self.execution} if self.execution != "capped" else {}),
+                    **({"self_contacts": self.self_contacts} if not self.self_contacts else {}))
 
 
 @dataclass
@@ -177,7 +184,8 @@ class DaggerCollector:
         self.policy = policy
         sizes = dict(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps),
                      scene_type=config.scene_type, object_source=config.objects)
-        self.env = SharedControlEnv(rendered_context=True, max_episode_steps=config.max_steps + 10, **sizes)
+        self.env = SharedControlEnv(rendered_context=True, max_episode_steps=config.max_steps + 10,
+                                    execution=config.execution, self_contacts=config.self_contacts, **sizes)
         self.speed_limits = controller_speed_limits(self.env.base)
         expert_env = gym.make(ENV_ID, obs_mode="state_dict", control_mode="pd_joint_pos_vel",
                               reconfiguration_freq=0, max_episode_steps=10_000, **sizes)

@@ -161,6 +161,11 @@ class PlanningConfig:
     ``"mesh"``: sampled from the object meshes (``rtv3 generate --context mesh``).
     Use what the policy was trained on."""
     scene_type: str = "mixed"
+    object_source: str = "procedural"
+    execution: str = "capped"
+    """How the env executes the prior's twist (``rtv3_maniskill.presets.EXECUTIONS``)."""
+    self_contacts: bool = True
+    """Whether a robot self contact counts as a collision."""
     max_steps: int = PLANNING_MAX_STEPS
     threshold: float = PLANNING_SUCCESS_THRESHOLD
     start_pose_attempts: int = 10
@@ -195,6 +200,10 @@ class PlanningConfig:
             max_steps=self.max_steps, threshold=self.threshold, start_pose_attempts=self.start_pose_attempts,
             policy_path=str(Path(self.policy_path).expanduser().resolve()) if self.policy_path is not None else None,
             planner=self.planner,
+            # Only when set, so that runs made before these options existed still resume.
+            **({"object_source": self.object_source} if self.object_source != "procedural" else {}),
+            **({"execution": self.execution} if self.execution != "capped" else {}),
+            **({"self_contacts": self.self_contacts} if not self.self_contacts else {}),
         )
 
 
@@ -318,6 +327,9 @@ class PlanningBenchmark:
             obs_mode="state_dict",
             control_mode="pd_ee_twist_qp" if config.planner == "neoss" else "pd_ee_twist",
             scene_type=config.scene_type,
+            object_source=config.object_source,
+            execution=config.execution,
+            self_contacts=config.self_contacts,
             num_points=int(policy.config.num_points),
             max_grasps=int(policy.config.max_grasps),
             reconfiguration_freq=0,

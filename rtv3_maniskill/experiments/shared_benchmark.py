@@ -53,6 +53,7 @@ from typing import Any
 import numpy as np
 
 from rtv3_maniskill.features import pregrasp_poses
+from rtv3_maniskill.presets import EXECUTIONS, GOAL_RULES
 from rtv3_maniskill.records import RecordStore, SettingsMismatch, scene_seeds, select_targets
 
 RESULT_FIELDS = (
@@ -128,6 +129,13 @@ class BenchmarkConfig:
     scene_type: str = "mixed"
     object_source: str = "procedural"
     """GraspClutter-v1's ``object_source`` (e.g. ``"random_urdfs"``); in the fingerprint when not the default."""
+    goals: str = "reachable"
+    """Which candidates are goals (``rtv3_maniskill.presets.GOAL_RULES``): ``reachable`` (the arm-reach check) or
+    ``all`` (every floating-hand-feasible grasp, the authors' rule); ``goals.csv`` holds the check either way."""
+    execution: str = "capped"
+    """GraspClutter-v1's twist execution: ``capped`` or ``tracked`` (the authors')."""
+    self_contacts: bool = True
+    """Whether a robot self contact is a collision (False: the authors' rule)."""
     ho_variant: str = "rtv3_authors"
     fusion: str = "tuned"
     """RT-V3's fusion preset (``SharedControlConfig.preset``): ``"tuned"`` or ``"paper"``."""
@@ -165,6 +173,10 @@ class BenchmarkConfig:
             raise BenchmarkError(f"obs_mode must be 'state_dict' or 'pointcloud', got {self.obs_mode!r}")
         if self.safety_filter not in (None, "neoss"):
             raise BenchmarkError(f"unknown safety filter {self.safety_filter!r}; known: neoss")
+        if self.goals not in GOAL_RULES:
+            raise BenchmarkError(f"unknown goal rule {self.goals!r}; known: {', '.join(GOAL_RULES)}")
+        if self.execution not in EXECUTIONS:
+            raise BenchmarkError(f"unknown execution {self.execution!r}; known: {', '.join(EXECUTIONS)}")
         if self.ho_variant not in VARIANTS:
             raise BenchmarkError(f"unknown HO variant {self.ho_variant!r}; known: {', '.join(VARIANTS)}")
         self.shared_control = dict(self.shared_control)
@@ -215,7 +227,15 @@ class BenchmarkConfig:
             shared_control=self._shared_control_settings() if self.uses_shared_controller else None, **self.extra,
             # Only when set, so that runs made before the option existed still resume.
             **({"object_source": self.object_source} if self.object_source != "procedural" else {}),
+            **({"goals": self.goals} if self.goals != "reachable" else {}),
+            **({"execution": self.execution} if self.execution != "capped" else {}),
+            **({"self_contacts": self.self_contacts} if not self.self_contacts else {}),
         )
+
+    def env_kwargs(self) -> dict[str, Any]:
+        """``GraspClutter-v1`` keyword arguments of these settings (scenes, objects, execution, contacts)."""
+        return dict(obs_mode=self.obs_mode, scene_type=self.scene_type, object_source=self.object_source,
+                    execution=self.execution, self_contacts=self.self_contacts)
 
 
 def weights_digest(policy_path: Path) -> str | None:
@@ -443,13 +463,20 @@ def goal_counts(path: Path) -> dict[str, int]:
     return dict(counts, candidates=len(rows), scenes=len({r["scene_seed"] for r in rows}))
 
 
-def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | None = None) -> str:
-    """Markdown table: one row per (user, method), paired with Direct, the paper's SR beside."""
+def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | None = None,
+                     goal_rule: str = "reachable") -> str:
+    """Markdown table: one row per (user, method), paired with Direct, the paper's SR beside; the goal
+    counts of ``goals.csv`` under ``goal_rule`` above it."""
     lines = []
     if goals and goals.get("candidates"):
         infeasible = ", ".join(f"{v} {k}" for k, v in goals.items() if k not in ("feasible", "candidates", "scenes"))
-        lines += [f"Goals: {goals.get('feasible', 0)} feasible of {goals['candidates']} grasp candidates in "
-                  f"{goals['scenes']} scenes (infeasible, never run: {infeasible or 'none'}).", ""]
+        if goal_rule == "all":
+            lines += [f"Goals (rule `all`, the authors': every floating-hand-feasible grasp): {goals['candidates']} "
+                      f"grasp candidates in {goals['scenes']} scenes, of which {goals.get('feasible', 0)} pass the "
+                      f"arm-reach check (others: {infeasible or 'none'}).", ""]
+        else:
+            lines += [f"Goals (rule `reachable`): {goals.get('feasible', 0)} feasible of {goals['candidates']} grasp "
+                      f"candidates in {goals['scenes']} scenes (infeasible, never run: {infeasible or 'none'}).", ""]
     lines += [
         "| User | Method | Trials | SR % (↑) | CR % (↓) | TOR % (↓) | reached % | Iter (↓) | W / L vs Direct "
         "| McNemar p | paper SR % |",
@@ -529,7 +556,9 @@ def write_summaries(output: Path, users: Sequence[str] | None = None,
         writer.writeheader()
         for s in summary:
             writer.writerow({k: (f"{v:.3f}" if isinstance(v, float) else v) for k, v in s.items()})
-    (output / "summary.md").write_text(summary_markdown(summary, goal_counts(output / "goals.csv")))
+    config_path = output / "config.json"
+    goal_rule = json.loads(config_path.read_text()).get("goals", "reachable") if config_path.is_file() else "reachable"
+    (output / "summary.md").write_text(summary_markdown(summary, goal_counts(output / "goals.csv"), goal_rule))
     if summary:
         plot_success_rates(summary, output / "success_rates.png")
     return summary
@@ -616,9 +645,7 @@ class _SceneRunner:
             from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
 
             policy = load_policy(_policy_path(config))  # clear error when missing
-        env_kwargs: dict[str, Any] = dict(obs_mode=config.obs_mode, scene_type=config.scene_type)
-        if config.object_source != "procedural":
-            env_kwargs.update(object_source=config.object_source)
+        env_kwargs = config.env_kwargs()
         if policy is not None:
             env_kwargs.update(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps))
         self.env = SharedControlEnv(rendered_context=config.rendered_context, safety_filter=config.safety_filter,
@@ -657,7 +684,7 @@ class _SceneRunner:
                     new_checks.append(dict(scene_seed=scene_seed, grasp_index=i, check=check))
         if on_checks is not None:
             on_checks(new_checks)
-        feasible = [i for i in range(count) if checks[i] == "feasible"]
+        feasible = [i for i in range(count) if config.goals == "all" or checks[i] == "feasible"]
         grasps = select_targets(feasible, config.goals_per_scene, config.seed, scene_seed, salt=TARGET_SALT)
         pregrasps = pregrasp_poses(env.base.grasp_poses[0].double())
         if on_plan is not None:

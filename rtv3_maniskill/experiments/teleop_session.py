@@ -40,6 +40,10 @@ class SessionConfig:
     """Pace steps at 20 Hz (default: for a person, not for a simulated user)."""
     policy_path: Path | None = None
     scene_type: str = "pile"
+    object_source: str = "procedural"
+    execution: str = "capped"
+    """How the env executes the assisted twist (``rtv3_maniskill.presets.EXECUTIONS``)."""
+    self_contacts: bool = True
     target_grasp: int | None = None
     init_qpos: np.ndarray | None = None
     """Start joint positions (7,) instead of the rest pose (e.g. IK of the pre-grasp)."""
@@ -86,7 +90,8 @@ class TeleopSession:
         render = dict(render_mode="rgb_array", human_render_camera_configs=dict(width=320, height=320))
         render = render if not config.headless else {}
         self.env = SharedControlEnv(num_points=num_points, max_grasps=max_grasps, scene_type=config.scene_type,
-                                    rendered_context=True, **render)
+                                    object_source=config.object_source, execution=config.execution,
+                                    self_contacts=config.self_contacts, rendered_context=True, **render)
         self.env.method = make_method(config.method, controller_speed_limits(self.env.base), policy=policy)
         self.speed_limits = controller_speed_limits(self.env.base)
         self.display = None
@@ -104,7 +109,8 @@ class TeleopSession:
 
             self.recorder = SessionRecorder(config.record, num_points, max_grasps, settings=dict(
                 method=config.method, input=config.input, participant=config.participant, scene_seed=config.scene_seed,
-                trials=config.trials, timeout_s=config.trial_config.timeout_s, scene_type=config.scene_type))
+                trials=config.trials, timeout_s=config.trial_config.timeout_s, scene_type=config.scene_type,
+                **({"object_source": config.object_source} if config.object_source != "procedural" else {})))
         self.quit = False
         self._shots = 0
 

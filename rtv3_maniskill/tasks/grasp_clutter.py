@@ -54,7 +54,7 @@ from rtv3_maniskill.tasks.scene_geometry import (
     WORKSPACE_CENTER,
     SceneGeometry,
 )
-from rtv3_maniskill.tasks.twist_controller import PandaTwist  # noqa: F401  (registers the agent)
+from rtv3_maniskill.tasks.twist_controller import EXECUTIONS, PandaTwist, set_execution  # noqa: F401  (registers)
 
 START_QPOS = np.concatenate([READY_QPOS, [0.04, 0.04]])
 """Default start (arm + open fingers): the ready pose, plus N(0, 0.02) per joint at reset."""
@@ -79,6 +79,11 @@ class GraspClutterEnv(BaseEnv):
         randomize_camera: draw the camera pose per scene (paper) instead of a fixed view.
         success_threshold: pose distance (docs/PAPER_DETAILS.md, shared-control weights) counted as success.
         collision_force_threshold: N of contact force on any robot link counted as collision.
+        execution: how ``pd_ee_twist`` executes a twist (``twist_controller.EXECUTIONS``): ``"capped"``
+            (as commanded, up to 0.3 m/s and 1.2 rad/s) or ``"tracked"`` (the authors': 0.75 of the
+            command per step, no practical cap).
+        self_contacts: count a robot link touching another as a collision (the authors' simulator
+            never reports them: False reproduces their rule).
     """
 
     SUPPORTED_ROBOTS = ["panda_twist"]
@@ -98,6 +103,8 @@ class GraspClutterEnv(BaseEnv):
         randomize_camera: bool = False,
         success_threshold: float = 0.1,
         collision_force_threshold: float = 1e-2,
+        execution: str = "capped",
+        self_contacts: bool = True,
         reconfiguration_freq: int | None = None,
         **kwargs,
     ):
@@ -109,6 +116,8 @@ class GraspClutterEnv(BaseEnv):
                             ("camera_resolution", camera_resolution)):
             if value <= 0:
                 raise ValueError(f"{name} must be positive, got {value}")
+        if execution not in EXECUTIONS:
+            raise ValueError(f"unknown execution {execution!r}; expected one of {tuple(EXECUTIONS)}")
         if voxel_size <= 0:
             raise ValueError(f"voxel_size must be positive, got {voxel_size}")
         obs_mode = kwargs.get("obs_mode", "state")
@@ -125,6 +134,8 @@ class GraspClutterEnv(BaseEnv):
         self.randomize_camera = randomize_camera
         self.success_threshold = success_threshold
         self.collision_force_threshold = collision_force_threshold
+        self.execution = execution
+        self.self_contacts = bool(self_contacts)
         num_envs = kwargs.get("num_envs", 1)
         if reconfiguration_freq is None:
             # A new clutter every episode on one env; fixed clutter per sub-scene when batched.
@@ -163,6 +174,7 @@ class GraspClutterEnv(BaseEnv):
 
     def _load_agent(self, options: dict):
         super()._load_agent(options, sapien.Pose(p=ROBOT_BASE_POSITION.tolist()))
+        set_execution(self.agent, self.execution)
 
     def _load_scene(self, options: dict):
         self._contact_links = None
@@ -333,11 +345,16 @@ class GraspClutterEnv(BaseEnv):
                                            se3.SHARED_CONTROL_ROT_WEIGHT)
 
     def robot_in_collision(self) -> torch.Tensor:
-        """``(B,)`` bool: any robot link but the base touches something with force above threshold."""
+        """``(B,)`` bool: any robot link but the base touches something with force above threshold (with
+        ``self_contacts=False``, something other than another robot link)."""
         if getattr(self, "_contact_links", None) is None:
             self._contact_links = [link.name for link in self.agent.robot.get_links() if link.name != "panda_link0"]
         forces = self.agent.robot.get_net_contact_forces(self._contact_links)
-        return (forces.norm(dim=-1) > self.collision_force_threshold).any(-1)
+        touching = (forces.norm(dim=-1) > self.collision_force_threshold).any(-1)
+        if not self.self_contacts and bool(touching.any()):  # a contact of links only among themselves is none
+            kinds = self.robot_contact_kinds()
+            touching = touching & torch.as_tensor([bool(k - {"self"}) for k in kinds], device=touching.device)
+        return touching
 
     def _robot_contact_pairs(self) -> tuple[list[tuple], list[tuple[int, str]], dict[frozenset, int]]:
         """The body pairs ``robot_contact_kinds`` watches, per sub-scene: every robot link but the base

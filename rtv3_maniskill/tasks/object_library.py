@@ -27,21 +27,12 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from rtv3_maniskill.tasks.scene_geometry import CollisionShape, ObjectGeometry
+from rtv3_maniskill.tasks.scene_geometry import CollisionShape, ObjectGeometry, translation, upright_cylinder
+from rtv3_maniskill.tasks.ycb_objects import YcbObjectSet
 
 PROCEDURAL_KINDS = ("box", "cylinder", "sphere", "capsule", "convex", "bottle", "mug", "lshape")
 MESH_SUFFIXES = (".obj", ".stl", ".glb")
 CACHE_DIR = Path(os.environ.get("RTV3_CACHE_DIR", Path.home() / ".cache" / "rtv3_maniskill"))
-
-# Rotation taking SAPIEN's cylinder/capsule axis (x) to the object's z axis.
-_X_TO_Z = trimesh.transformations.rotation_matrix(-np.pi / 2, [0, 1, 0])
-
-
-def _translate(x: float, y: float, z: float, base: np.ndarray | None = None) -> np.ndarray:
-    pose = np.eye(4) if base is None else base.copy()
-    pose[:3, 3] = [x, y, z]
-    return pose
-
 
 def _random_color(rng: np.random.Generator) -> tuple[float, float, float, float]:
     hsv = np.array([[rng.uniform(0, 1), rng.uniform(0.4, 0.9), rng.uniform(0.5, 0.95)]])
@@ -49,12 +40,6 @@ def _random_color(rng: np.random.Generator) -> tuple[float, float, float, float]
 
     r, g, b = mcolors.hsv_to_rgb(hsv)[0]
     return (float(r), float(g), float(b), 1.0)
-
-
-def _upright_cylinder(radius: float, half_length: float, z0: float, kind: str = "cylinder") -> CollisionShape:
-    """A cylinder/capsule standing on z = z0 (its lowest point), axis along object z."""
-    bottom = half_length + (radius if kind == "capsule" else 0.0)
-    return CollisionShape(kind, (radius, half_length), _translate(0, 0, z0 + bottom, _X_TO_Z))
 
 
 def _make_object(name: str, shapes: list[CollisionShape], rng: np.random.Generator) -> ObjectGeometry:
@@ -68,14 +53,14 @@ def make_procedural_object(kind: str, rng: np.random.Generator, scale: float = 1
     u = lambda lo, hi: float(rng.uniform(lo, hi)) * scale  # noqa: E731
     if kind == "box":
         hx, hy, hz = u(0.015, 0.035), u(0.015, 0.035), u(0.015, 0.06)
-        shapes = [CollisionShape("box", (hx, hy, hz), _translate(0, 0, hz))]
+        shapes = [CollisionShape("box", (hx, hy, hz), translation(0, 0, hz))]
     elif kind == "cylinder":
-        shapes = [_upright_cylinder(u(0.018, 0.035), u(0.025, 0.07), 0.0)]
+        shapes = [upright_cylinder(u(0.018, 0.035), u(0.025, 0.07), 0.0)]
     elif kind == "sphere":
         r = u(0.022, 0.035)
-        shapes = [CollisionShape("sphere", (r,), _translate(0, 0, r))]
+        shapes = [CollisionShape("sphere", (r,), translation(0, 0, r))]
     elif kind == "capsule":
-        shapes = [_upright_cylinder(u(0.015, 0.03), u(0.02, 0.05), 0.0, kind="capsule")]
+        shapes = [upright_cylinder(u(0.015, 0.03), u(0.02, 0.05), 0.0, kind="capsule")]
     elif kind == "convex":
         semi_axes = np.array([u(0.015, 0.035), u(0.015, 0.035), u(0.02, 0.05)])
         directions = rng.normal(size=(int(rng.integers(10, 20)), 3))
@@ -87,24 +72,24 @@ def make_procedural_object(kind: str, rng: np.random.Generator, scale: float = 1
         r_body, h_body = u(0.025, 0.035), u(0.04, 0.06)
         r_neck, h_neck = u(0.01, 0.015), u(0.015, 0.03)
         shapes = [
-            _upright_cylinder(r_body, h_body, 0.0),
-            _upright_cylinder(r_neck, h_neck, 2 * h_body),
+            upright_cylinder(r_body, h_body, 0.0),
+            upright_cylinder(r_neck, h_neck, 2 * h_body),
         ]
     elif kind == "mug":
         r, h = u(0.028, 0.035), u(0.03, 0.045)
         t = 0.006 * scale
         reach = u(0.02, 0.03)
         shapes = [
-            _upright_cylinder(r, h, 0.0),
-            CollisionShape("box", (reach / 2, t, t), _translate(r + reach / 2 - t, 0, 1.6 * h)),
-            CollisionShape("box", (reach / 2, t, t), _translate(r + reach / 2 - t, 0, 0.4 * h)),
-            CollisionShape("box", (t, t, 0.6 * h + t), _translate(r + reach - t, 0, h)),
+            upright_cylinder(r, h, 0.0),
+            CollisionShape("box", (reach / 2, t, t), translation(r + reach / 2 - t, 0, 1.6 * h)),
+            CollisionShape("box", (reach / 2, t, t), translation(r + reach / 2 - t, 0, 0.4 * h)),
+            CollisionShape("box", (t, t, 0.6 * h + t), translation(r + reach - t, 0, h)),
         ]
     elif kind == "lshape":
         a, b, w, hz = u(0.04, 0.07), u(0.03, 0.05), u(0.012, 0.02), u(0.015, 0.025)
         shapes = [
-            CollisionShape("box", (a, w, hz), _translate(0, 0, hz)),
-            CollisionShape("box", (w, b, hz), _translate(a - w, b + w, hz)),
+            CollisionShape("box", (a, w, hz), translation(0, 0, hz)),
+            CollisionShape("box", (w, b, hz), translation(a - w, b + w, hz)),
         ]
     else:
         raise ValueError(f"unknown procedural object kind {kind!r}; expected one of {PROCEDURAL_KINDS}")
@@ -483,17 +468,23 @@ class MixedObjectSet:
         return self.sets[int(rng.integers(len(self.sets)))].sample(rng, scale)
 
 
-ObjectSet = ProceduralObjectSet | MeshFolderObjectSet | RandomUrdfObjectSet | MixedObjectSet
+ObjectSet = ProceduralObjectSet | MeshFolderObjectSet | RandomUrdfObjectSet | MixedObjectSet | YcbObjectSet
+YCB = "ycb"
 
 
 def make_object_set(source: str = "procedural") -> ObjectSet:
-    """``"procedural"`` (built in), ``"procedural:box,mug"`` (some kinds), ``"random_urdfs"`` (pybullet's
+    """``"procedural"`` (built in), ``"procedural:box,mug"`` (some kinds), ``"ycb"`` (YCB objects at their
+    nominal sizes, built in; ``"ycb:mug,chips_can"`` some of them), ``"random_urdfs"`` (pybullet's
     random objects; ``"random_urdfs:FOLDER"`` for another copy of that folder), several of these joined
     with ``+`` (each object from one of them, e.g. ``"procedural+random_urdfs"``) or a mesh folder path."""
     if source == "procedural":
         return ProceduralObjectSet()
     if source.startswith("procedural:"):
         return ProceduralObjectSet(tuple(k.strip() for k in source.split(":", 1)[1].split(",") if k.strip()))
+    if source == YCB:
+        return YcbObjectSet()
+    if source.startswith(YCB + ":"):
+        return YcbObjectSet(tuple(n.strip() for n in source.split(":", 1)[1].split(",") if n.strip()))
     if source == RANDOM_URDFS:
         return RandomUrdfObjectSet()
     if source.startswith(RANDOM_URDFS + ":"):

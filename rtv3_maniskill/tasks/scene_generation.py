@@ -25,8 +25,16 @@ from rtv3_maniskill.tasks.scene_geometry import (
     SceneGeometry,
 )
 
-SceneType = Literal["pile", "packed"]
-SCENE_TYPES = ("pile", "packed")
+SceneType = Literal["pile", "packed", "packed_ycb"]
+SCENE_TYPES = ("pile", "packed", "packed_ycb")
+"""Layouts: VGN's pile and packed scenes, and the RT-V3 authors' YCB packed validation scenes."""
+PACKED_YCB_OBJECTS = 4
+"""Distinct objects a ``packed_ycb`` scene asks for; at least ``PACKED_YCB_MIN_OBJECTS`` are kept."""
+PACKED_YCB_MIN_OBJECTS = 3
+PACKED_YCB_SCALE = 0.8
+PACKED_YCB_HALF_RANGE = 0.10
+"""Object positions: x, y uniform in [0.05, 0.25] m of the 30 cm workspace, i.e. centre +- 0.10 m."""
+PACKED_YCB_ATTEMPTS = 12
 _SIM_DT = 1.0 / 100.0  # ManiSkill's sim_freq for this task, so layouts rest in both
 
 
@@ -158,15 +166,27 @@ class _SettleScene:
                 return False
         return True
 
-    def penetrates(self, actor: sapien.Entity, tolerance: float = 1e-3) -> bool:
-        """Whether ``actor`` overlaps another object (contact with separation below -tolerance)."""
+    def penetrates(self, actor: sapien.Entity, tolerance: float = 1e-3, keep_others: bool = False) -> bool:
+        """Whether ``actor`` overlaps another object (contact with separation below -tolerance).
+
+        The test takes one physics step; ``keep_others`` puts the other objects back where they were
+        (that step would otherwise push them away from an overlapping newcomer)."""
+        others = [a for a in self.actors if a is not actor]
+        saved = [a.get_pose() for a in others] if keep_others else []
         self.scene.step()
+        overlaps = False
         for contact in self.scene.get_contacts():
             entities = {contact.bodies[0].entity, contact.bodies[1].entity}
             if actor in entities and len(entities & set(self.actors)) == 2:
                 if any(p.separation < -tolerance for p in contact.points):
-                    return True
-        return False
+                    overlaps = True
+                    break
+        for other, pose in zip(others, saved):
+            other.set_pose(pose)
+            body = other.find_component_by_type(sapien.physx.PhysxRigidDynamicComponent)
+            body.set_linear_velocity([0.0, 0.0, 0.0])
+            body.set_angular_velocity([0.0, 0.0, 0.0])
+        return overlaps
 
 
 def _in_workspace(position: np.ndarray) -> bool:
@@ -186,9 +206,12 @@ def generate_layout(
     Args:
         object_set: where objects come from (procedural or a mesh folder).
         rng: the only source of randomness (same state -> same layout).
-        scene_type: ``"pile"`` (dropped from 0.2 m into a box that is then removed) or
-            ``"packed"`` (upright objects placed side by side, rejected on overlap).
-        num_objects: objects to try to place; ``None`` draws Poisson(4) + 1 (VGN).
+        scene_type: ``"pile"`` (dropped from 0.2 m into a box that is then removed),
+            ``"packed"`` (upright objects placed side by side, rejected on overlap) or
+            ``"packed_ycb"`` (the authors' validation scenes: :data:`PACKED_YCB_OBJECTS` distinct
+            objects upright at scale 0.8, random yaw, x and y within 10 cm of the workspace centre,
+            a placement rejected on contact, at most 12 attempts in all, at least 3 objects kept).
+        num_objects: objects to try to place; ``None`` draws Poisson(4) + 1 (VGN), or 4 for ``packed_ycb``.
         max_objects: cap on the drawn count.
 
     Returns:
@@ -202,6 +225,12 @@ def generate_layout(
     if max_objects <= 0:
         raise ValueError(f"max_objects must be positive, got {max_objects}")
     for _ in range(20):
+        if scene_type == "packed_ycb":
+            count = num_objects if num_objects is not None else PACKED_YCB_OBJECTS
+            layout = _packed_ycb(object_set, rng, count)
+            if len(layout.objects) >= min(PACKED_YCB_MIN_OBJECTS, count):
+                return layout
+            continue
         count = num_objects if num_objects is not None else min(int(rng.poisson(4)) + 1, max_objects)
         layout = _pile(object_set, rng, count) if scene_type == "pile" else _packed(object_set, rng, count)
         if layout.objects:
@@ -245,6 +274,41 @@ def _packed(object_set: ObjectSet, rng: np.random.Generator, count: int) -> Scen
                 continue
             placed.append((obj, actor))
             break
+    sim.settle(max_time=1.5)
+    sim.settle_until_stable()
+    return _collect(placed, sim)
+
+
+def _distinct_objects(object_set: ObjectSet, rng: np.random.Generator, count: int,
+                      scale: float) -> list[ObjectGeometry]:
+    """``count`` objects with different names (fewer when the set runs out of names)."""
+    if hasattr(object_set, "sample_distinct"):
+        return object_set.sample_distinct(rng, count, scale)
+    objects: dict[str, ObjectGeometry] = {}
+    for _ in range(20 * count):
+        obj = object_set.sample(rng, scale)
+        objects.setdefault(obj.name, obj)
+        if len(objects) == count:
+            break
+    return list(objects.values())
+
+
+def _packed_ycb(object_set: ObjectSet, rng: np.random.Generator, count: int) -> SceneGeometry:
+    sim = _SettleScene()
+    placed: list[tuple[ObjectGeometry, sapien.Entity]] = []
+    waiting = _distinct_objects(object_set, rng, count, PACKED_YCB_SCALE)
+    for _attempt in range(PACKED_YCB_ATTEMPTS):
+        if not waiting:
+            break
+        pose = np.eye(4)
+        pose[:3, :3] = _yaw(float(rng.uniform(0, 2 * np.pi)))
+        xy = WORKSPACE_CENTER[:2] + rng.uniform(-PACKED_YCB_HALF_RANGE, PACKED_YCB_HALF_RANGE, size=2)
+        pose[:3, 3] = [xy[0], xy[1], 0.002]
+        actor = sim.add(waiting[0], pose)
+        if sim.penetrates(actor, tolerance=0.0, keep_others=True):
+            sim.remove(actor)
+            continue
+        placed.append((waiting.pop(0), actor))
     sim.settle(max_time=1.5)
     sim.settle_until_stable()
     return _collect(placed, sim)

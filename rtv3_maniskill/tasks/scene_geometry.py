@@ -32,6 +32,16 @@ WORKSPACE_HALF_SIZE = 0.15
 
 ShapeKind = Literal["box", "sphere", "cylinder", "capsule", "convex"]
 
+# Rotation taking SAPIEN's cylinder/capsule axis (x) to the object's z axis.
+_X_TO_Z = trimesh.transformations.rotation_matrix(-np.pi / 2, [0, 1, 0])
+
+
+def translation(x: float, y: float, z: float, base: np.ndarray | None = None) -> np.ndarray:
+    """``(4, 4)`` ``base`` (default identity) with its translation set to ``(x, y, z)``."""
+    pose = np.eye(4) if base is None else base.copy()
+    pose[:3, 3] = [x, y, z]
+    return pose
+
 
 @dataclass
 class CollisionShape:
@@ -68,6 +78,12 @@ class CollisionShape:
             raise ValueError(f"unknown collision shape kind {self.kind!r}")
         mesh.apply_transform(self.local_pose)
         return mesh
+
+
+def upright_cylinder(radius: float, half_length: float, z0: float, kind: str = "cylinder") -> CollisionShape:
+    """A cylinder (or capsule) standing on ``z = z0`` (its lowest point), axis along the object's z."""
+    bottom = half_length + (radius if kind == "capsule" else 0.0)
+    return CollisionShape(kind, (radius, half_length), translation(0, 0, z0 + bottom, _X_TO_Z))
 
 
 @dataclass

@@ -26,6 +26,8 @@ from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController, PDJ
 from mani_skill.agents.registration import register_agent
 from mani_skill.agents.robots.panda.panda import Panda
 
+from rtv3_maniskill.presets import EXECUTIONS
+
 if TYPE_CHECKING:  # control.neo_qp imports tasks.scene_geometry, whose package imports this module
     from rtv3_maniskill.control.neo_qp import NeoController, NeoSafetyFilter
 
@@ -77,7 +79,8 @@ class PDEETwistController(PDJointPosController):
 
     def set_action(self, action):
         action = self._preprocess_action(action)
-        action = clamp_twist_norms(action, self.config.max_linear_speed, self.config.max_angular_speed)
+        action = self.config.command_gain * clamp_twist_norms(action, self.config.max_linear_speed,
+                                                              self.config.max_angular_speed)
         self._step = 0
         self._start_qpos = self.qpos
         # Integrate the virtual (target) configuration; re-anchor it to the measured one when
@@ -99,6 +102,9 @@ class PDEETwistControllerConfig(PDJointPosControllerConfig):
     """m/s; commands with a larger translation speed are scaled down."""
     max_angular_speed: float = 1.2
     """rad/s; commands with a larger rotation speed are scaled down."""
+    command_gain: float = 1.0
+    """Share of the (clamped) commanded twist the arm executes in a step: 1 follows the command, 0.75
+    is what the RT-V3 authors' pose-target tracking (QP gain 15 at 20 Hz) executes."""
     max_joint_speed: float = 2.0
     """rad/s per joint (the Panda allows 2.175-2.61)."""
     ik_damping: float = 0.02
@@ -154,6 +160,18 @@ class PDEETwistQPControllerConfig(PDEETwistControllerConfig):
     controller_cls = PDEETwistQPController
 
 
+def set_execution(agent, execution: str) -> None:
+    """Set the twist execution (:data:`EXECUTIONS`) of every twist controller ``agent`` has built."""
+    if execution not in EXECUTIONS:
+        raise ValueError(f"unknown execution {execution!r}; expected one of {tuple(EXECUTIONS)}")
+    for combined in agent.controllers.values():
+        arm = getattr(combined, "controllers", {}).get("arm")
+        if isinstance(arm, PDEETwistController):
+            for key, value in EXECUTIONS[execution].items():
+                setattr(arm.config, key, value)
+            arm._initialize_action_space()
+
+
 def attach_safety_filters(env, filters: list[NeoSafetyFilter | None]) -> None:
     """Put one ``NeoSafetyFilter`` per sub-scene into a ``pd_ee_twist_qp`` env (unwrapped or wrapped)."""
     arm = env.unwrapped.agent.controller.controllers.get("arm")
@@ -200,8 +218,10 @@ __all__ = [
     "PDEETwistControllerConfig",
     "PDEETwistQPController",
     "PDEETwistQPControllerConfig",
+    "EXECUTIONS",
     "PandaTwist",
     "attach_safety_filters",
     "clamp_twist_norms",
+    "set_execution",
     "target_object_index",
 ]

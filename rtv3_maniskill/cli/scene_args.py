@@ -1,0 +1,63 @@
+"""The scene options every command shares: ``--preset`` and the settings it fills in.
+
+``--preset paper`` (the authors' protocol) or ``--preset easy`` sets the layout, the object set,
+the twist execution and the contact rule (and, for the benchmark, the goal rule); an explicit
+``--scene-type``, ``--objects``, ``--execution`` or ``--self-contacts`` overrides the preset's value.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from rtv3_maniskill.presets import EXECUTIONS, PRESETS, get_preset
+
+SCENE_TYPE_CHOICES = ("pile", "packed", "packed_ycb", "mixed")
+
+
+def add_scene_arguments(parser: argparse.ArgumentParser, default_preset: str = "easy", execution: bool = True) -> None:
+    """``--preset`` and its overrides (defaults None: taken from the preset); ``execution=False`` leaves
+    out the options of commands that do not execute twists (planner demonstrations)."""
+    parser.add_argument("--preset", choices=tuple(PRESETS), default=default_preset,
+                        help="scene preset: paper (the authors' protocol: YCB-sized objects packed upright, every "
+                             "floating-hand-feasible grasp a goal, their twist execution, self contacts not counted) "
+                             f"or easy (procedural piles and packs, arm-reach goals); default {default_preset}")
+    parser.add_argument("--scene-type", choices=SCENE_TYPE_CHOICES, default=None,
+                        help="layout (default: the preset's): pile, packed (VGN), packed_ycb (the authors' YCB "
+                             "validation scenes) or mixed (pile or packed)")
+    parser.add_argument("--objects", default=None,
+                        help="object source (default: the preset's): 'ycb' (YCB objects at nominal sizes, built "
+                             "in), 'procedural', 'random_urdfs', 'procedural+random_urdfs' or a folder of meshes "
+                             "(e.g. ManiSkill's YCB models folder once downloaded)")
+    if not execution:
+        return
+    parser.add_argument("--execution", choices=tuple(EXECUTIONS), default=None,
+                        help="twist execution (default: the preset's): capped (as commanded, <= 0.3 m/s) or "
+                             "tracked (the authors': 0.75 of the command per step, no speed cap)")
+    parser.add_argument("--self-contacts", choices=("count", "ignore"), default=None,
+                        help="whether a robot self contact is a collision (default: the preset's; paper: ignore)")
+
+
+def scene_settings(args: argparse.Namespace) -> dict[str, Any]:
+    """``GraspClutter-v1`` keyword arguments of the parsed options: the preset, then the overrides
+    (only the options the command has)."""
+    settings = get_preset(args.preset).env_kwargs()
+    for key, option in (("scene_type", "scene_type"), ("object_source", "objects"), ("execution", "execution")):
+        if getattr(args, option, None) is not None:
+            settings[key] = getattr(args, option)
+    if getattr(args, "self_contacts", None) is not None:
+        settings["self_contacts"] = args.self_contacts == "count"
+    if not hasattr(args, "execution"):
+        settings.pop("execution")
+        settings.pop("self_contacts")
+    return settings
+
+
+def resolve_scene_arguments(args: argparse.Namespace) -> argparse.Namespace:
+    """Fill the preset's values into ``args.scene_type`` and ``args.objects`` (and ``args.execution``,
+    ``args.self_contacts`` as a bool, where the command has them), in place; returns ``args``."""
+    settings = scene_settings(args)
+    args.scene_type, args.objects = settings["scene_type"], settings["object_source"]
+    if "execution" in settings:
+        args.execution, args.self_contacts = settings["execution"], settings["self_contacts"]
+    return args

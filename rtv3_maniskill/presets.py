@@ -1,0 +1,63 @@
+"""Scene presets: the benchmark difficulty a command runs at (``--preset``).
+
+``paper`` is the RT-V3 authors' validation protocol (docs/PAPER_DETAILS.md, "Authors' benchmark
+protocol"): YCB-sized objects in their packed layout, every floating-hand-feasible grasp a goal
+(no check that the arm can reach it), the twist executed as their pose-target tracking does, and
+robot self contacts not counted (their simulator never reports them). ``easy`` is the earlier
+benchmark: procedural objects in VGN pile / packed layouts, goals filtered by the arm's reach,
+twists executed as commanded up to 0.3 m/s, every contact counted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+GOAL_RULES = ("all", "reachable")
+"""``all``: every grasp candidate (each passed the floating-hand test); ``reachable``: only those with a
+collision-free IK solution at the pre-grasp and a free straight approach (``experiments.goals``)."""
+
+EXECUTIONS: dict[str, dict[str, float]] = {
+    "capped": dict(command_gain=1.0, max_linear_speed=0.3, max_angular_speed=1.2),
+    "tracked": dict(command_gain=0.75, max_linear_speed=1.0, max_angular_speed=4.0),
+}
+"""How a commanded twist is executed: ``capped`` follows it up to 0.3 m/s and 1.2 rad/s; ``tracked``
+is the authors' execution: the twist becomes a pose target one step ahead, tracked at gain 15,
+so the arm moves 0.75 of the command per step, with no practical speed cap (1 m/s, 4 rad/s; the
+joints' 2 rad/s still holds)."""
+
+
+@dataclass(frozen=True)
+class ScenePreset:
+    """What a preset sets: the env's scenes and execution, and the benchmark's goal rule."""
+
+    scene_type: str
+    """``GraspClutter-v1`` layout: pile, packed, packed_ycb or mixed (pile or packed)."""
+    object_source: str
+    """``GraspClutter-v1`` object set (``procedural``, ``ycb``, ...)."""
+    execution: str
+    """Twist execution (:data:`EXECUTIONS`): capped or tracked."""
+    self_contacts: bool
+    """Whether a robot link touching another counts as a collision."""
+    goals: str
+    """Benchmark goal rule (:data:`GOAL_RULES`)."""
+
+    def env_kwargs(self) -> dict:
+        """The ``GraspClutter-v1`` keyword arguments of this preset."""
+        kwargs = asdict(self)
+        kwargs.pop("goals")
+        return kwargs
+
+
+PRESETS: dict[str, ScenePreset] = {
+    "paper": ScenePreset(scene_type="packed_ycb", object_source="ycb", execution="tracked", self_contacts=False,
+                         goals="all"),
+    "easy": ScenePreset(scene_type="mixed", object_source="procedural", execution="capped", self_contacts=True,
+                        goals="reachable"),
+}
+
+
+def get_preset(name: str) -> ScenePreset:
+    """The preset ``name`` (:data:`PRESETS`); a clear error for an unknown one."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; expected one of {', '.join(PRESETS)}")
+    return PRESETS[name]

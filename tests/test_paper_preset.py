@@ -1,0 +1,118 @@
+"""The paper preset: YCB-sized objects, the authors' packed layout, their goal rule and execution."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
+from rtv3_maniskill.presets import EXECUTIONS, PRESETS, get_preset
+from rtv3_maniskill.tasks.object_library import make_object_set
+from rtv3_maniskill.tasks.scene_generation import (
+    PACKED_YCB_HALF_RANGE,
+    PACKED_YCB_SCALE,
+    _SettleScene,
+    generate_layout,
+)
+from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER
+from rtv3_maniskill.tasks.ycb_objects import YCB_BOXES, YCB_CYLINDERS, YCB_NAMES, YcbObjectSet, make_ycb_object
+
+
+@pytest.mark.parametrize("name", YCB_NAMES)
+def test_ycb_objects_have_their_nominal_size_and_stand_on_the_table(name):
+    obj = make_ycb_object(name, scale=0.8)
+    lo, hi = obj.collision_mesh().bounds
+    assert lo[2] == pytest.approx(0.0, abs=1e-9)  # standing on z = 0
+    assert (lo[:2] + hi[:2]) == pytest.approx([0.0, 0.0], abs=0.02)  # footprint around the origin
+    extent = hi - lo
+    if name in YCB_BOXES:
+        assert extent == pytest.approx(0.8 * np.array(YCB_BOXES[name]), abs=1e-6)
+    elif name in YCB_CYLINDERS:
+        radius, height = YCB_CYLINDERS[name]
+        assert extent[2] == pytest.approx(0.8 * height, abs=1e-6)
+        assert extent[:2] == pytest.approx([1.6 * radius] * 2, rel=0.02)
+    assert all(shape.kind in ("box", "cylinder") for shape in obj.shapes)  # convex parts
+
+
+def test_ycb_object_source_and_its_errors():
+    assert isinstance(make_object_set("ycb"), YcbObjectSet)
+    assert make_object_set("ycb:mug,chips_can").names == ("mug", "chips_can")
+    with pytest.raises(ValueError, match="unknown YCB objects.*'banana'"):
+        make_object_set("ycb:mug,banana")
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        make_object_set("/no/such/ycb/models")
+    picks = YcbObjectSet().sample_distinct(np.random.default_rng(0), 4, 0.8)
+    assert len({o.name for o in picks}) == 4
+
+
+def test_packed_ycb_scenes_follow_the_authors_rules():
+    objects = make_object_set("ycb")
+    for seed in range(6):
+        layout = generate_layout(objects, np.random.default_rng(800000 + seed), "packed_ycb")
+        names = [o.name for o in layout.objects]
+        assert 3 <= len(names) <= 4 and len(set(names)) == len(names)  # distinct, at least 3 kept
+        sim = _SettleScene()
+        for obj, pose in zip(layout.objects, layout.object_poses):
+            assert pose[:3, 2] == pytest.approx([0, 0, 1], abs=0.02)  # upright
+            assert np.abs(pose[:2, 3] - WORKSPACE_CENTER[:2]).max() <= PACKED_YCB_HALF_RANGE + 0.01  # in the region
+            assert pose[2, 3] == pytest.approx(0.0, abs=0.003)  # resting on the table
+            base = make_ycb_object(obj.name, PACKED_YCB_SCALE)  # the authors' global scale
+            assert obj.collision_mesh().extents == pytest.approx(base.collision_mesh().extents)
+            sim.add(obj, pose)
+        assert not any(sim.penetrates(actor, tolerance=1e-3) for actor in sim.actors)  # no contact between objects
+
+
+def _args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_scene_arguments(parser)
+    return parser.parse_args(list(argv))
+
+
+def test_presets_set_the_scene_execution_contacts_and_goals_and_options_override_them():
+    paper = get_preset("paper")
+    assert (paper.scene_type, paper.object_source, paper.goals) == ("packed_ycb", "ycb", "all")
+    assert paper.execution in EXECUTIONS and PRESETS["easy"].goals == "reachable"
+    assert scene_settings(_args("--preset", "paper")) == paper.env_kwargs()
+    settings = scene_settings(_args("--preset", "paper", "--objects", "procedural", "--self-contacts", "count"))
+    assert settings["object_source"] == "procedural" and settings["self_contacts"] is True
+    assert settings["scene_type"] == "packed_ycb"
+    with pytest.raises(ValueError, match="unknown preset 'hard'"):
+        get_preset("hard")
+
+
+def test_tracked_execution_moves_the_arm_by_three_quarters_of_the_command():
+    import gymnasium as gym
+
+    import rtv3_maniskill  # noqa: F401
+
+    moved = {}
+    for execution in ("capped", "tracked"):
+        env = gym.make("GraspClutter-v1", obs_mode="state_dict", control_mode="pd_ee_twist", render_backend="none",
+                       execution=execution, scene_type="packed_ycb", object_source="ycb")
+        env.reset(seed=800001)
+        start = env.unwrapped.tcp_pose_matrix[0, :3, 3].clone()
+        for _ in range(10):
+            env.step(np.array([0.0, 0.0, -0.2, 0.0, 0.0, 0.0, 1.0], dtype=np.float32))
+        moved[execution] = float((env.unwrapped.tcp_pose_matrix[0, :3, 3] - start).norm())
+        env.close()
+    assert moved["capped"] == pytest.approx(0.1, rel=0.15)  # 10 steps of 0.2 m/s at 20 Hz
+    assert moved["tracked"] / moved["capped"] == pytest.approx(0.75, abs=0.05)
+
+
+def test_a_small_paper_preset_benchmark_runs_every_candidate_and_counts_both_goal_rules(tmp_path):
+    from rtv3_maniskill.cli import main
+
+    out = tmp_path / "bench"
+    assert main(["benchmark-shared", "--preset", "paper", "--seed", "8", "--scenes", "1", "--goals-per-scene", "2",
+                 "--users", "ideal", "--methods", "direct,oracle", "--output", str(out), "--no-progress"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["goals"] == "all" and config["object_source"] == "ycb" and config["scene_type"] == "packed_ycb"
+    with open(out / "results.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 4 and {r["method"] for r in rows} == {"direct", "oracle"}
+    summary = (out / "summary.md").read_text()
+    assert "rule `all`" in summary and "pass the arm-reach check" in summary
