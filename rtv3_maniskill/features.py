@@ -57,6 +57,29 @@ delete_episodes / split / merge / modify_tasks) copy data through pandas, which 
 the ``Array2D`` columns of 2-D features. Readers bring them back with :func:`unflatten`."""
 
 
+STATE_NAMES = (
+    [f"ee_pos_{a}" for a in "xyz"] + [f"ee_quat_{a}" for a in "wxyz"]
+    + [f"ee_twist_{a}" for a in ("vx", "vy", "vz", "wx", "wy", "wz")]
+    + [f"q{i}" for i in range(1, 8)] + [f"dq{i}" for i in range(1, 8)]
+)
+"""Channel names of :data:`STATE` (and of each row of :data:`STATE_HISTORY`)."""
+FLAT_LAYOUTS = {
+    STATE_HISTORY: ("step", STATE_NAMES),
+    POINT_CLOUD: ("point", ["x", "y", "z", "r", "g", "b"]),
+    GRASPS: ("grasp", ["x", "y", "z", "qw", "qx", "qy", "qz", "width", "score"]),
+}
+"""Per :data:`STORED_FLAT` feature: what a row is, and the names of its channels."""
+
+
+def flat_names(key: str, rows: int) -> dict:
+    """The ``names`` a :data:`STORED_FLAT` feature gets in a LeRobot ``info.json``: its per-item layout,
+    ``{"layout": "(rows, width) row-major, stored flat", "rows": [item, rows], "channels": [...]}``, so a
+    LeRobot user can read the flat vector without this package (:func:`unflatten_batch` does it here)."""
+    item, channels = FLAT_LAYOUTS[key]
+    return {"layout": f"({rows}, {len(channels)}) row-major, stored flat", "rows": [item, int(rows)],
+            "channels": list(channels)}
+
+
 def stored_shape(key: str, rows: int) -> tuple[int]:
     """Dataset shape of a :data:`STORED_FLAT` feature with ``rows`` rows: ``(rows * width,)``."""
     return (rows * STORED_FLAT[key],)
@@ -85,6 +108,12 @@ def unflatten(key: str, value):
             f"'{key}' has shape {tuple(value.shape)}; expected (..., rows, {width}) or flat (..., rows * {width})"
         )
     return value.reshape(*value.shape[:-1], value.shape[-1] // width, width)
+
+
+def unflatten_batch(batch: dict) -> dict:
+    """A LeRobot sample or batch with every :data:`STORED_FLAT` feature it holds brought back to
+    ``(..., rows, width)`` (see :func:`unflatten`); other keys are passed through. A new dict."""
+    return {key: unflatten(key, value) if key in STORED_FLAT else value for key, value in batch.items()}
 
 
 # Slices of observation.state

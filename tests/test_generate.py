@@ -297,3 +297,48 @@ def test_exported_dataset_stats_cover_every_frame(tiny_dataset):
     np.testing.assert_allclose(stats["max"], actions.max(0), atol=1e-6)
     np.testing.assert_allclose(stats["mean"], actions.mean(0), atol=1e-5)
     assert int(np.asarray(stats["count"]).item()) == len(ds)
+
+
+def test_info_json_says_the_layout_of_every_flat_feature_and_batches_unflatten(tiny_dataset):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    info = json.loads((tiny_dataset / "meta" / "info.json").read_text())["features"]
+    for key, (item, channels) in features.FLAT_LAYOUTS.items():
+        names = info[key]["names"]
+        rows = names["rows"][1]
+        assert names["rows"][0] == item and names["channels"] == list(channels)
+        assert info[key]["shape"] == [rows * len(channels)]
+    assert info[features.POINT_CLOUD]["names"]["channels"] == ["x", "y", "z", "r", "g", "b"]
+    sample = LeRobotDataset(REPO_ID, root=tiny_dataset)[0]
+    batch = features.unflatten_batch({k: v[None] for k, v in sample.items() if isinstance(v, torch.Tensor)})
+    assert tuple(batch[features.POINT_CLOUD].shape) == (1, 256, 6)
+    assert tuple(batch[features.GRASPS].shape) == (1, 16, features.GRASP_DIM)
+    assert tuple(batch[features.STATE_HISTORY].shape) == (1, features.HISTORY_STEPS, features.STATE_DIM)
+    assert batch[features.ACTION] is not None and tuple(batch[features.ACTION].shape) == (1, 6)
+
+
+def test_push_to_hub_uploads_the_dataset_with_a_card_and_fails_clearly_offline(tiny_dataset, tmp_path, monkeypatch):
+    import huggingface_hub
+    from huggingface_hub import constants
+
+    from rtv3_maniskill.datasets.hub import HubPushError, push_dataset
+
+    calls: dict[str, object] = {}
+    monkeypatch.setattr(huggingface_hub.HfApi, "create_repo", lambda self, **kw: calls.setdefault("repo", kw))
+    monkeypatch.setattr(huggingface_hub.HfApi, "upload_folder", lambda self, **kw: calls.setdefault("upload", kw))
+    monkeypatch.setattr(huggingface_hub.HfApi, "create_tag", lambda self, *a, **kw: None)
+    monkeypatch.setattr(huggingface_hub.HfApi, "delete_tag", lambda self, *a, **kw: None)
+    monkeypatch.setattr(huggingface_hub.DatasetCard, "push_to_hub",
+                        lambda self, **kw: calls.setdefault("card", str(self)))
+    command = "rtv3 generate --num-scenes 1 --output ds --push-to-hub someone/grasps"
+    assert push_dataset(tiny_dataset, "someone/grasps", "Motion-planner demonstrations", command) == "someone/grasps"
+    assert calls["repo"]["repo_id"] == "someone/grasps" and calls["repo"]["repo_type"] == "dataset"
+    assert Path(calls["upload"]["folder_path"]) == tiny_dataset and calls["upload"]["repo_type"] == "dataset"
+    card = calls["card"]
+    assert command in card and "GraspClutter-v1" in card and '"observation.point_cloud"' in card
+    with pytest.raises(ValueError, match="not a Hub repo id"):
+        push_dataset(tiny_dataset, "no-owner", "x")
+    monkeypatch.undo()
+    monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)
+    with pytest.raises(HubPushError, match="could not push .* the dataset is kept there"):
+        push_dataset(tiny_dataset, "someone/grasps", "Motion-planner demonstrations", command)

@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
+from rtv3_maniskill.cli.scene_args import add_executor_arguments, add_scene_arguments, scene_settings
 from rtv3_maniskill.presets import GOAL_RULES, get_preset
 
 
@@ -90,6 +90,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=1,
                         help="run the scenes in this many processes (one core each; the results are the same as "
                              "one process's, trial for trial)")
+    add_executor_arguments(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--merge", type=Path, nargs="+", metavar="DIR", default=None,
                         help="run nothing: combine finished runs of disjoint users or methods (e.g. one process per "
@@ -127,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
         run_benchmark,
         summary_markdown,
     )
+    from rtv3_maniskill.scene_pool import SceneWorkerError
 
     if args.merge is not None:
         try:
@@ -148,8 +150,9 @@ def run(args: argparse.Namespace) -> int:
             goals=args.goals or get_preset(args.preset).goals, ho_variant=args.ho_variant, fusion=args.fusion,
             shared_control=shared_control_overrides(args),
         )
-        summary = run_benchmark(config, progress=not args.no_progress, workers=args.workers)
-    except (BenchmarkError, FileNotFoundError) as err:
+        summary = run_benchmark(config, progress=not args.no_progress, workers=args.workers,
+                                executor=args.executor, ray_address=args.ray_address)
+    except (BenchmarkError, FileNotFoundError, SceneWorkerError) as err:
         raise SystemExit(f"error: {err}") from None
     print((args.output / "summary.md").read_text())
     print(f"results: {args.output}/results.csv, goals.csv, summary.csv, summary.md, success_rates.png")

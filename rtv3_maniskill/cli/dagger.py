@@ -9,7 +9,8 @@ import argparse
 import json
 from pathlib import Path
 
-from rtv3_maniskill.cli.scene_args import add_scene_arguments, resolve_scene_arguments
+from rtv3_maniskill.cli.scene_args import add_executor_arguments, add_scene_arguments, resolve_scene_arguments
+from rtv3_maniskill.datasets.hub import HubPushError, check_repo_id, push_dataset
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,16 +31,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "instead (0: spread like the others)")
     add_scene_arguments(parser)
     parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")
-    parser.add_argument("--workers", type=int, default=1, help="parallel CPU worker processes")
+    parser.add_argument("--workers", type=int, default=1, help="parallel CPU workers (processes or Ray actors)")
+    add_executor_arguments(parser)
+    parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
+                        help="after the run, push the dataset to this Hugging Face Hub dataset repo (OWNER/NAME), with "
+                             "a dataset card naming the task, the features and this command")
 
 
 def run(args: argparse.Namespace) -> int:
     from rtv3_maniskill.experiments.dagger import DaggerConfig, run_dagger
+    from rtv3_maniskill.scene_pool import SceneWorkerError
 
     resolve_scene_arguments(args)
+    if args.push_to_hub is not None:
+        try:
+            check_repo_id(args.push_to_hub)
+        except ValueError as err:
+            raise SystemExit(f"error: {err}") from None
 
-    if args.policy_path is not None and not (args.policy_path / "config.json").is_file():
-        raise SystemExit(f"error: --policy.path {args.policy_path} holds no config.json (a pretrained_model folder)")
+    from rtv3_maniskill.policies.rtv3.checkpoints import CheckpointError, resolve_checkpoint
+
+    try:
+        resolve_checkpoint(args.policy_path)
+    except CheckpointError as err:
+        raise SystemExit(f"error: {err}") from None
     try:
         config = DaggerConfig(
             output=args.output, policy_path=args.policy_path, scenes=args.num_scenes, seed=args.seed,
@@ -53,8 +68,15 @@ def run(args: argparse.Namespace) -> int:
     if not config.output.parent.is_dir():
         raise SystemExit(f"error: the parent folder of --output does not exist: {config.output.parent}")
     try:
-        summary = run_dagger(config)
-    except ValueError as err:  # a folder holding a round made with other settings
+        summary = run_dagger(config, executor=args.executor, ray_address=args.ray_address)
+    except (ValueError, SceneWorkerError) as err:  # a folder holding a round made with other settings, a worker
         raise SystemExit(f"error: {err}") from None
     print(json.dumps({k: v for k, v in summary.items() if k != "config"}, indent=2))
+    if args.push_to_hub is not None:
+        try:
+            push_dataset(config.output, args.push_to_hub, "DAgger relabels (the motion planner re-planning from states "
+                         "visited by the RT-V3 prior and by simulated users)")
+        except HubPushError as err:
+            raise SystemExit(f"error: {err}") from None
+        print(f"pushed {config.output} to the Hub dataset repo {args.push_to_hub}")
     return 0

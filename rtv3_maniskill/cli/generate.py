@@ -10,16 +10,23 @@ import argparse
 import json
 import time
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-from rtv3_maniskill.cli.scene_args import add_scene_arguments, resolve_scene_arguments
+from rtv3_maniskill.cli.scene_args import add_executor_arguments, add_scene_arguments, resolve_scene_arguments
+from rtv3_maniskill.datasets.hub import HubPushError, check_repo_id, push_dataset
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-scenes", type=int, required=True, help="clutter scenes to draw")
     parser.add_argument("--output", type=Path, required=True, help="dataset folder (LeRobot root)")
     parser.add_argument("--seed", type=int, default=0, help="scene i uses seed SEED*100000 + i")
-    parser.add_argument("--workers", type=int, default=1, help="parallel CPU worker processes")
+    parser.add_argument("--workers", type=int, default=1, help="parallel CPU workers (processes or Ray actors)")
+    add_executor_arguments(parser)
+    parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
+                        help="after the run, push the dataset to this Hugging Face Hub dataset repo (OWNER/NAME), with "
+                             "a dataset card naming the task, the features and this command")
     add_scene_arguments(parser, execution=False)
     parser.add_argument("--grasps-per-scene", type=int, default=None, help="cap on targets per scene (default all)")
     parser.add_argument("--num-points", type=int, default=512,
@@ -65,10 +72,23 @@ def _settings(args: argparse.Namespace) -> dict:
     )
 
 
-_WORKER: dict = {}
+@dataclass
+class _Worker:
+    """A scene worker's state: the planner's demonstration recorder (with its env), the run's
+    settings, and for a one-process run the staging area it writes into."""
+
+    recorder: Any
+    args: dict
+    staging: Any = None
+
+    def close(self) -> None:
+        if self.staging is not None:
+            self.staging.close()
+        self.recorder.env.close()
 
 
-def _init_worker(args_dict: dict) -> None:
+def _init_worker(args_dict: dict) -> _Worker:
+    """A scene worker's state: its env and the planner's demonstration recorder."""
     import gymnasium as gym
     import torch
 
@@ -89,21 +109,21 @@ def _init_worker(args_dict: dict) -> None:
         reconfiguration_freq=0,
         max_episode_steps=10_000,
     )
-    _WORKER["recorder"] = DemonstrationRecorder(env, PandaPlanner, plan_timeout=args_dict["plan_timeout"],
-                                                end_at=args_dict["end_at"])
-    _WORKER["args"] = args_dict
-    # appends attempts (the run's process guarded the settings)
-    _WORKER["staging"] = StagingArea(Path(args_dict["output"]))
+    recorder = DemonstrationRecorder(env, PandaPlanner, plan_timeout=args_dict["plan_timeout"],
+                                     end_at=args_dict["end_at"])
+    # A one-process run writes each target into the staging area as it finishes (nothing to send back).
+    staging = StagingArea(Path(args_dict["output"])) if args_dict["write_through"] else None
+    return _Worker(recorder, args_dict, staging)
 
 
-def _run_scene(job: tuple[int, list[str]]) -> dict:
-    """Record every not-yet-attempted grasp of one scene; returns counts for the summary."""
-    from rtv3_maniskill.datasets.lerobot_export import StagingArea
+def _run_scene(worker: _Worker, job: tuple[int, list[str]]) -> dict:
+    """Record every not-yet-attempted grasp of one scene; returns what to stage and counts for the summary."""
+    from rtv3_maniskill.datasets.lerobot_export import StagedScene, StagingArea
 
     scene_seed, done_keys = job
-    args = _WORKER["args"]
-    recorder = _WORKER["recorder"]
-    staging = _WORKER["staging"]
+    args = worker.args
+    recorder = worker.recorder
+    staged = worker.staging or StagedScene()
     start = time.perf_counter()
     num_grasps = recorder.load_scene(scene_seed)
     if args["context"] == "rendered" and recorder.base.scene.can_render():
@@ -118,27 +138,30 @@ def _run_scene(job: tuple[int, list[str]]) -> dict:
             continue
         result = recorder.record(g, seed=scene_seed * 1000 + g)
         if isinstance(result, str):
-            staging.log_attempt(scene_seed, g, result)
+            staged.log_attempt(scene_seed, g, result)
             outcomes[result] += 1
         else:
-            staging.save(result)
-            staging.log_attempt(scene_seed, g, "success", len(result.state))
+            staged.save_success(result)
             outcomes["success"] += 1
             frames += len(result.state)
     return dict(scene=scene_seed, grasps=len(grasps), outcomes=dict(outcomes), frames=frames,
-                seconds=time.perf_counter() - start)
+                seconds=time.perf_counter() - start, staged=staged if isinstance(staged, StagedScene) else None)
 
 
 def run(args: argparse.Namespace) -> int:
-    import multiprocessing as mp
-
     from tqdm import tqdm
 
     from rtv3_maniskill.datasets.lerobot_export import StagedEpisodeError, StagingArea, export_lerobot_dataset
     from rtv3_maniskill.records import scene_seeds
+    from rtv3_maniskill.scene_pool import SceneWorkerError, run_scenes
 
     resolve_scene_arguments(args)
     _validate(args)
+    if args.push_to_hub is not None:
+        try:
+            check_repo_id(args.push_to_hub)
+        except ValueError as err:
+            raise SystemExit(f"error: {err}") from None
     args.output = args.output.expanduser().absolute()
     try:  # refuses a folder with attempts made under other settings (not one whose run failed before any)
         with StagingArea(args.output, settings=_settings(args)) as staging:
@@ -149,32 +172,30 @@ def run(args: argparse.Namespace) -> int:
     jobs = [(s, sorted(k for k in attempted if k.startswith(StagingArea.scene_prefix(s)))) for s in scenes]
     if attempted:
         print(f"resuming: {len(attempted)} grasp targets already attempted in {args.output}")
-    args_dict = dict(vars(args), output=str(args.output))
+    args_dict = {k: v for k, v in vars(args).items() if not k.startswith("_") and not callable(v)}
+    args_dict["output"] = str(args.output)
+    args_dict["write_through"] = args.workers == 1 and args.executor == "local"
     total: Counter = Counter()
     frames, seconds = 0, 0.0
     start = time.perf_counter()
     bar = tqdm(total=len(jobs), desc="scenes", unit="scene")
-    if not jobs:
-        results = iter(())
-    elif args.workers == 1:
-        _init_worker(args_dict)
-        results = map(_run_scene, jobs)
-    else:
-        pool = mp.get_context("spawn").Pool(args.workers, initializer=_init_worker, initargs=(args_dict,))
-        results = pool.imap_unordered(_run_scene, jobs)
-    for result in results:
-        total.update(result["outcomes"])
-        frames += result["frames"]
-        seconds += result["seconds"]
-        bar.update(1)
-        bar.set_postfix(ok=total["success"], failed=sum(v for k, v in total.items() if k != "success"))
-    bar.close()
-    if jobs and args.workers > 1:
-        pool.close()
-        pool.join()
+    results = run_scenes(_init_worker, args_dict, _run_scene, jobs, workers=args.workers, executor=args.executor,
+                         ray_address=args.ray_address)
+    try:
+        with StagingArea(args.output) as staging:
+            for result in results:
+                if result["staged"] is not None:
+                    staging.write(result["staged"])
+                total.update(result["outcomes"])
+                frames += result["frames"]
+                seconds += result["seconds"]
+                bar.update(1)
+                bar.set_postfix(ok=total["success"], failed=sum(v for k, v in total.items() if k != "success"))
+    except SceneWorkerError as err:
+        raise SystemExit(f"error: {err}") from None
+    finally:
+        bar.close()
     wall = time.perf_counter() - start
-    if "staging" in _WORKER:  # this process recorded (workers=1)
-        _WORKER.pop("staging").close()
     try:
         exported = export_lerobot_dataset(args.output, args.num_points, args.max_grasps, end_at=args.end_at)
     except StagedEpisodeError as err:
@@ -200,4 +221,10 @@ def run(args: argparse.Namespace) -> int:
     )
     (args.output / "rtv3_summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))
+    if args.push_to_hub is not None:
+        try:
+            push_dataset(args.output, args.push_to_hub, "Motion-planner demonstrations (OMPL RRT-Connect + TOPP-RA)")
+        except HubPushError as err:
+            raise SystemExit(f"error: {err}") from None
+        print(f"pushed {args.output} to the Hub dataset repo {args.push_to_hub}")
     return 0

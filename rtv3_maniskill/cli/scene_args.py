@@ -38,6 +38,16 @@ def add_scene_arguments(parser: argparse.ArgumentParser, default_preset: str = "
                         help="whether a robot self contact is a collision (default: the preset's; paper: ignore)")
 
 
+def add_executor_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--executor`` and ``--ray-address``: where the scene pool's workers run (``--workers`` of them)."""
+    parser.add_argument("--executor", choices=("local", "ray"), default="local",
+                        help="local processes (default) or Ray tasks (pip install -e '.[ray]'); a run made with "
+                             "one resumes with the other")
+    parser.add_argument("--ray-address", default=None,
+                        help="with --executor ray: the cluster to join (e.g. 'auto' or HOST:6379); default: a "
+                             "local Ray instance with --workers CPUs")
+
+
 def scene_settings(args: argparse.Namespace) -> dict[str, Any]:
     """``GraspClutter-v1`` keyword arguments of the parsed options: the preset, then the overrides
     (only the options the command has)."""

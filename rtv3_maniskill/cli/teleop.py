@@ -11,6 +11,7 @@ import argparse
 from pathlib import Path
 
 from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
+from rtv3_maniskill.datasets.hub import HubPushError, check_repo_id, push_dataset
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,6 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--participant", default="P0", help="participant id written with every trial")
     parser.add_argument("--record", type=Path, default=None,
                         help="record the session as a LeRobot dataset into this new folder (+ sessions.csv)")
+    parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
+                        help="with --record: push the recorded session to this Hugging Face Hub dataset repo "
+                             "(OWNER/NAME) when it ends")
     parser.add_argument("--timeout", type=float, default=90.0, help="seconds of simulated time per trial")
     parser.add_argument("--headless", action="store_true", help="no window (simulated input only)")
     parser.add_argument("--realtime", choices=["auto", "on", "off"], default="auto",
@@ -43,6 +47,13 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"error: --trials must be >= 1, got {args.trials}")
     if args.headless and not args.input.startswith("simulated:"):
         raise SystemExit(f"error: --headless needs a simulated input (--input simulated:NAME), got {args.input!r}")
+    if args.push_to_hub is not None:
+        if args.record is None:
+            raise SystemExit("error: --push-to-hub needs --record DIR (the session to push)")
+        try:
+            check_repo_id(args.push_to_hub)
+        except ValueError as err:
+            raise SystemExit(f"error: {err}") from None
     if args.record is not None and args.record.exists():
         raise SystemExit(f"error: {args.record} already exists; record each session into a new folder")
     config = SessionConfig(
@@ -60,4 +71,11 @@ def run(args: argparse.Namespace) -> int:
     print("outcomes: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
     if args.record is not None:
         print(f"recorded {len(results)} trial(s) into {args.record} (LeRobot dataset + sessions.csv)")
+    if args.push_to_hub is not None:
+        try:
+            push_dataset(args.record, args.push_to_hub, "Shared-control teleoperation trials (user twist, assistance "
+                         "and the executed twist per step; sessions.csv has each trial's outcome)")
+        except HubPushError as err:
+            raise SystemExit(f"error: {err}") from None
+        print(f"pushed {args.record} to the Hub dataset repo {args.push_to_hub}")
     return 0

@@ -49,23 +49,20 @@ REPO_ID = "local/rtv3_grasp_clutter"
 
 def dataset_features(num_points: int, max_grasps: int) -> dict:
     """LeRobot feature spec of the RT-V3 dataset (see ``rtv3_maniskill.features``)."""
-    state_names = (
-        [f"ee_pos_{a}" for a in "xyz"]
-        + [f"ee_quat_{a}" for a in "wxyz"]
-        + [f"ee_twist_{a}" for a in ("vx", "vy", "vz", "wx", "wy", "wz")]
-        + [f"q{i}" for i in range(1, 8)]
-        + [f"dq{i}" for i in range(1, 8)]
-    )
     # The 2-D features are stored flat, row-major (features.STORED_FLAT: LeRobot's dataset
-    # tools cannot copy 2-D columns); readers reshape them with features.unflatten.
+    # tools cannot copy 2-D columns); their names say the layout, and readers reshape them with
+    # features.unflatten / unflatten_batch.
     flat = features.stored_shape
+    steps = features.HISTORY_STEPS
     return {
-        features.STATE: {"dtype": "float32", "shape": (features.STATE_DIM,), "names": state_names},
-        features.STATE_HISTORY: {"dtype": "float32", "shape": flat(features.STATE_HISTORY, features.HISTORY_STEPS),
-                                 "names": None},
-        features.POINT_CLOUD: {"dtype": "float32", "shape": flat(features.POINT_CLOUD, num_points), "names": None},
+        features.STATE: {"dtype": "float32", "shape": (features.STATE_DIM,), "names": list(features.STATE_NAMES)},
+        features.STATE_HISTORY: {"dtype": "float32", "shape": flat(features.STATE_HISTORY, steps),
+                                 "names": features.flat_names(features.STATE_HISTORY, steps)},
+        features.POINT_CLOUD: {"dtype": "float32", "shape": flat(features.POINT_CLOUD, num_points),
+                               "names": features.flat_names(features.POINT_CLOUD, num_points)},
         features.POINT_CLOUD_MASK: {"dtype": "float32", "shape": (num_points,), "names": ["point"]},
-        features.GRASPS: {"dtype": "float32", "shape": flat(features.GRASPS, max_grasps), "names": None},
+        features.GRASPS: {"dtype": "float32", "shape": flat(features.GRASPS, max_grasps),
+                          "names": features.flat_names(features.GRASPS, max_grasps)},
         features.GRASPS_MASK: {"dtype": "float32", "shape": (max_grasps,), "names": ["grasp"]},
         features.ACTION: {"dtype": "float32", "shape": (6,), "names": ["vx", "vy", "vz", "wx", "wy", "wz"]},
         features.TARGET_GRASP: {"dtype": "int64", "shape": (1,), "names": None},
@@ -113,6 +110,24 @@ def end_at_pregrasp(state: np.ndarray, action: np.ndarray, pregrasp_step: int,
 
 class StagedEpisodeError(RuntimeError):
     """A staged episode file cannot be read (truncated or corrupt); the message names it."""
+
+
+class StagedScene:
+    """One scene's episodes and attempt outcomes, made by a scene worker and written by the run's
+    process (:meth:`StagingArea.write`): the same calls as a :class:`StagingArea`, held in memory.
+    (A one-process run writes straight into its :class:`StagingArea`, each target as it finishes.)"""
+
+    def __init__(self) -> None:
+        self.entries: list[tuple[Episode | None, int, int, str, int, str]] = []
+
+    def save_success(self, episode: Episode, variant: str = "") -> None:
+        """A finished episode and its ``success`` attempt."""
+        self.entries.append((episode, episode.scene_seed, episode.target_grasp_index, "success", len(episode.state),
+                             variant))
+
+    def log_attempt(self, scene_seed: int, grasp_index: int, outcome: str, frames: int = 0,
+                    variant: str = "") -> None:
+        self.entries.append((None, scene_seed, grasp_index, outcome, frames, variant))
 
 
 class StagingArea:
@@ -209,6 +224,20 @@ class StagingArea:
                     variant: str = "") -> None:
         self.records.append(dict(key=self.key(scene_seed, grasp_index, variant), scene=scene_seed,
                                  grasp=grasp_index, outcome=outcome, frames=frames))
+
+    def save_success(self, episode: Episode, variant: str = "") -> None:
+        """A finished episode, then its ``success`` attempt (as :meth:`StagedScene.save_success`)."""
+        self.save(episode, variant=variant)
+        self.log_attempt(episode.scene_seed, episode.target_grasp_index, "success", len(episode.state),
+                         variant=variant)
+
+    def write(self, staged: StagedScene) -> None:
+        """Write what a scene worker staged (:class:`StagedScene`), in its order: each episode before
+        its attempt row, so a kill in between leaves an episode that is attempted again."""
+        for episode, scene_seed, grasp_index, outcome, frames, variant in staged.entries:
+            if episode is not None:
+                self.save(episode, variant=variant)
+            self.log_attempt(scene_seed, grasp_index, outcome, frames, variant=variant)
 
     def episode_files(self) -> list[Path]:
         return sorted(p for p in self.dir.glob("scene*_grasp*.npz") if not p.name.endswith(".tmp.npz"))

@@ -288,29 +288,25 @@ def rollout_variant(driver_index: int, step: int | None = None) -> str:
     return f"r{driver_index}" if step is None else f"r{driver_index}t{step:03d}"
 
 
-_WORKER: dict = {}
-
-
-def _init_worker(config: DaggerConfig) -> None:
+def _init_worker(config: DaggerConfig) -> DaggerCollector:
+    """A scene worker's state: the collector with its envs, planner and policy."""
     import torch
 
-    from rtv3_maniskill.datasets.lerobot_export import StagingArea
     from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
 
     torch.set_num_threads(1)
-    policy = load_policy(config.policy_path)
-    _WORKER.update(config=config, collector=DaggerCollector(config, policy), staging=StagingArea(config.output))
+    return DaggerCollector(config, load_policy(config.policy_path))
 
 
-def _run_scene(job: tuple[int, int, list[str]]) -> dict[str, Any]:
-    """Roll out and relabel every not-yet-finished target of one scene; counts for the summary."""
-    from rtv3_maniskill.datasets.lerobot_export import StagingArea
+def _run_scene(collector: DaggerCollector, job: tuple[int, int, list[str]]) -> dict[str, Any]:
+    """Roll out and relabel every not-yet-finished target of one scene; returns what to stage and
+    counts for the summary."""
+    from rtv3_maniskill.datasets.lerobot_export import StagedScene, StagingArea
     from rtv3_maniskill.records import select_targets
 
     scene_index, scene_seed, done = job
-    config: DaggerConfig = _WORKER["config"]
-    collector: DaggerCollector = _WORKER["collector"]
-    staging: StagingArea = _WORKER["staging"]
+    config = collector.config
+    staged = StagedScene()
     done_keys = set(done)
     start = time.perf_counter()
     counts: Counter = Counter()
@@ -331,28 +327,28 @@ def _run_scene(job: tuple[int, int, list[str]]) -> dict[str, Any]:
                 continue
             result = collector.relabel(rollout, grasp, step, seed * 1000 + step)
             if isinstance(result, str):
-                staging.log_attempt(scene_seed, grasp, result, variant=variant)
+                staged.log_attempt(scene_seed, grasp, result, variant=variant)
                 counts[result] += 1
             else:
-                staging.save(result, variant=variant)
-                staging.log_attempt(scene_seed, grasp, "success", len(result.state), variant=variant)
+                staged.save_success(result, variant=variant)
                 counts["success"] += 1
-        staging.log_attempt(scene_seed, grasp, f"rollout_{rollout.outcome}", rollout.steps, variant=rollout_variant(d))
-    return dict(scene=scene_seed, counts=dict(counts), seconds=time.perf_counter() - start)
+        staged.log_attempt(scene_seed, grasp, f"rollout_{rollout.outcome}", rollout.steps, variant=rollout_variant(d))
+    return dict(scene=scene_seed, counts=dict(counts), seconds=time.perf_counter() - start, staged=staged)
 
 
-def run_dagger(config: DaggerConfig, progress: bool = True) -> dict[str, Any]:
+def run_dagger(config: DaggerConfig, progress: bool = True, executor: str = "local",
+               ray_address: str | None = None) -> dict[str, Any]:
     """Run (or resume) one DAgger round; exports the LeRobot dataset and returns the summary
-    (also written to ``rtv3_summary.json``)."""
-    import multiprocessing as mp
-
+    (also written to ``rtv3_summary.json``). Scenes run in ``config.workers`` workers of the scene
+    pool (``executor``: local processes or Ray); this process alone writes the staging area."""
     from tqdm import tqdm
 
     from rtv3_maniskill.datasets.lerobot_export import StagingArea, export_lerobot_dataset
-    from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT
+    from rtv3_maniskill.policies.rtv3.checkpoints import resolve_checkpoint
     from rtv3_maniskill.records import scene_seeds
+    from rtv3_maniskill.scene_pool import run_scenes
 
-    policy_config = json.loads(((config.policy_path or SHIPPED_CHECKPOINT) / "config.json").read_text())
+    policy_config = json.loads((resolve_checkpoint(config.policy_path) / "config.json").read_text())
     num_points, max_grasps = int(policy_config["num_points"]), int(policy_config["max_grasps"])
     with StagingArea(config.output, settings=config.settings(num_points, max_grasps)) as staging:
         attempted = staging.attempts()
@@ -364,24 +360,18 @@ def run_dagger(config: DaggerConfig, progress: bool = True) -> dict[str, Any]:
     start = time.perf_counter()
     worker_seconds = 0.0
     bar = tqdm(total=len(jobs), desc="dagger scenes", unit="scene", disable=not progress)
-    if config.workers == 1:
-        _init_worker(config)
-        results = map(_run_scene, jobs)
-    else:
-        pool = mp.get_context("spawn").Pool(config.workers, initializer=_init_worker, initargs=(config,))
-        results = pool.imap_unordered(_run_scene, jobs)
-    for result in results:
-        total.update(result["counts"])
-        worker_seconds += result["seconds"]
-        bar.update(1)
-        bar.set_postfix(relabels=total["success"], rollouts=sum(v for k, v in total.items() if k.startswith("roll")))
-    bar.close()
-    if config.workers > 1:
-        pool.close()
-        pool.join()
-    elif "collector" in _WORKER:
-        _WORKER.pop("collector").close()
-        _WORKER.pop("staging").close()
+    try:
+        with StagingArea(config.output) as staging:
+            for result in run_scenes(_init_worker, config, _run_scene, jobs, workers=config.workers,
+                                     executor=executor, ray_address=ray_address):
+                staging.write(result["staged"])
+                total.update(result["counts"])
+                worker_seconds += result["seconds"]
+                bar.update(1)
+                bar.set_postfix(relabels=total["success"],
+                                rollouts=sum(v for k, v in total.items() if k.startswith("roll")))
+    finally:
+        bar.close()
     with StagingArea(config.output) as staging:
         rows = list(staging.attempts().values())
     frames = export_lerobot_dataset(config.output, num_points, max_grasps, progress=progress)

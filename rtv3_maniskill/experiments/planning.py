@@ -195,10 +195,12 @@ class PlanningConfig:
 
     def fingerprint(self) -> dict[str, Any]:
         """Settings that change a trial's outcome: a resumed run must match them."""
+        from rtv3_maniskill.policies.rtv3.checkpoints import resolve_checkpoint
+
         return dict(
             seed=self.seed, context=self.context, point_cloud=self.point_cloud, scene_type=self.scene_type,
             max_steps=self.max_steps, threshold=self.threshold, start_pose_attempts=self.start_pose_attempts,
-            policy_path=str(Path(self.policy_path).expanduser().resolve()) if self.policy_path is not None else None,
+            policy_path=str(resolve_checkpoint(self.policy_path).resolve()) if self.policy_path is not None else None,
             planner=self.planner,
             # Only when set, so that runs made before these options existed still resume.
             **({"object_source": self.object_source} if self.object_source != "procedural" else {}),

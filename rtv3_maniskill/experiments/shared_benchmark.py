@@ -728,39 +728,43 @@ def _needs_policy(config: BenchmarkConfig) -> bool:
 
 
 def _policy_path(config: BenchmarkConfig) -> Path:
-    from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT
+    """The checkpoint's local folder (a Hub repo id resolved to its cached snapshot)."""
+    from rtv3_maniskill.policies.rtv3.checkpoints import resolve_checkpoint
 
-    return Path(config.policy_path) if config.policy_path is not None else SHIPPED_CHECKPOINT
-
-
-_WORKER: dict[str, _SceneRunner] = {}
-"""The scene runner of a ``workers > 1`` process (:func:`_init_worker`)."""
+    return resolve_checkpoint(config.policy_path)
 
 
-def _init_worker(config: BenchmarkConfig) -> None:
-    _WORKER["runner"] = _SceneRunner(config)
+def _start_runner(config: BenchmarkConfig) -> _SceneRunner:
+    """A scene worker's state: its own env, methods and policy."""
+    return _SceneRunner(config)
 
 
-def _run_scene_job(job: tuple[int, dict[int, str], set[tuple[str, ...]]]) -> tuple[list[dict], list[dict]]:
-    return _WORKER["runner"].run_scene(*job)
+def _run_scene_job(runner: _SceneRunner, job: tuple[int, dict[int, str], set[tuple[str, ...]]]
+                   ) -> tuple[list[dict], list[dict]]:
+    return runner.run_scene(*job)
 
 
 def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = True,
-                  workers: int = 1) -> list[dict[str, Any]]:
+                  workers: int = 1, executor: str = "local", ray_address: str | None = None) -> list[dict[str, Any]]:
     """Run (or resume) the benchmark; returns the summary rows. ``policy`` overrides ``policy_path``.
 
-    ``workers > 1`` runs scenes in that many processes (each loads the policy from
-    ``policy_path``, so ``policy`` must be None); this process alone writes ``results.csv`` and
-    ``goals.csv``, a scene's rows once the scene is done, so an interrupted run loses at most the
-    scenes in flight and the folder is the same as a serial run's (either resumes the other).
+    ``workers > 1`` or ``executor="ray"`` runs scenes in that many workers of the scene pool
+    (:func:`rtv3_maniskill.scene_pool.run_scenes`; each loads the policy from ``policy_path``, so
+    ``policy`` must be None); this process alone writes ``results.csv`` and ``goals.csv``, a scene's
+    rows once the scene is done, so an interrupted run loses at most the scenes in flight and the
+    folder is the same as a serial run's (either resumes the other). A failing worker stops the run
+    (:class:`~rtv3_maniskill.scene_pool.SceneWorkerError`).
     """
-    import multiprocessing as mp
-
     from tqdm import tqdm
+
+    from rtv3_maniskill.scene_pool import EXECUTORS, run_scenes
 
     if workers < 1:
         raise BenchmarkError(f"workers must be >= 1, got {workers}")
-    if workers > 1 and policy is not None:
+    if executor not in EXECUTORS:
+        raise BenchmarkError(f"unknown executor {executor!r}; known: {', '.join(EXECUTORS)}")
+    serial = workers == 1 and executor == "local"
+    if not serial and policy is not None:
         raise BenchmarkError("a policy object cannot be sent to worker processes: give policy_path with workers > 1")
     output = config.output
     output.mkdir(parents=True, exist_ok=True)
@@ -781,7 +785,7 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     jobs = [(s, checked.get(s, {}), done_by_scene.get(s, set())) for s in config.scene_seeds()]
 
     # One process: a bar over trials (their number known scene by scene); several: over scenes.
-    bar = tqdm(total=0 if workers == 1 else len(jobs), unit="trial" if workers == 1 else "scene",
+    bar = tqdm(total=0 if serial else len(jobs), unit="trial" if serial else "scene",
                disable=not progress, dynamic_ncols=True)
     wins: dict[str, list[int]] = {}
 
@@ -802,25 +806,21 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
         for row in rows:
             goal_checks.append(row)
 
-    runner = pool = None
+    runner = None
     try:
-        if workers == 1:
+        if serial:
             runner = _SceneRunner(config, policy)
             for scene_seed, checks, done in jobs:
                 runner.run_scene(scene_seed, checks, done, on_checks=record_checks, on_plan=plan, on_trial=record_trial)
                 bar.update(len(done))  # the scene's trials finished in an earlier run
         else:
-            pool = mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_init_worker, initargs=(config,))
-            for new_checks, rows in pool.imap_unordered(_run_scene_job, jobs):
+            for new_checks, rows in run_scenes(_start_runner, config, _run_scene_job, jobs, workers=workers,
+                                               executor=executor, ray_address=ray_address):
                 record_checks(new_checks)
                 for row in rows:
                     record(row)
                 bar.update(1)
-            pool.close()
-            pool.join()
     finally:
-        if pool is not None:
-            pool.terminate()
         if runner is not None:
             runner.close()
         bar.close()
