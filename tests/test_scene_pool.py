@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import time
 
+import numpy as np
 import pytest
 
 from rtv3_maniskill.scene_pool import SceneWorkerError, run_scenes
@@ -74,7 +75,8 @@ def _episodes(root):
 
     dataset = LeRobotDataset("local/test", root=root)
     frame = dataset.hf_dataset.with_format("numpy")
-    return dataset.meta.total_episodes, frame["observation.state"].sum(), frame["action"].sum()
+    return (dataset.meta.total_episodes, float(np.asarray(frame["observation.state"]).sum()),
+            float(np.asarray(frame["action"]).sum()))
 
 
 def test_generate_under_ray_gives_the_local_episodes(ray_cluster, tmp_path):

@@ -159,3 +159,37 @@ def test_grasp_buttons_lift_the_target_and_a_miss_fails(tmp_path):
     first = dataset[0]
     assert first[features.STATE_HISTORY].shape == (features.HISTORY_STEPS * features.STATE_DIM,)
     assert first["class_weights"].shape == (64,)
+
+
+def test_a_killed_session_keeps_its_finished_trials_and_resumes(tmp_path):
+    """SIGKILL during trial 2: trial 1 loads with LeRobot, --resume records trials 2 and 3, study analyze reads all."""
+    import signal
+
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from rtv3_maniskill.cli import main
+    from rtv3_maniskill.datasets.lerobot_export import REPO_ID
+
+    folder = tmp_path / "P01_direct"
+    cmd = ["teleop", "--method", "direct", "--input", "simulated:ideal", "--headless", "--trials", "3",
+           "--timeout", "6", "--participant", "P01", "--record", str(folder)]
+    proc = subprocess.Popen([RTV3, *cmd], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    sessions = folder / "sessions.csv"
+    deadline = time.time() + 300
+    while time.time() < deadline and not (sessions.is_file() and len(sessions.read_text().splitlines()) >= 2):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert len(sessions.read_text().splitlines()) == 2, "killed during trial 2: one finished trial"
+    dataset = LeRobotDataset(REPO_ID, root=folder)
+    assert dataset.meta.total_episodes == 1 and dataset.num_frames == len(_frames(folder)) > 0
+    assert main([*cmd, "--resume"]) == 0
+    rows = pd.read_csv(sessions)
+    assert list(rows["trial"]) == [0, 1, 2] and list(rows["episode_index"]) == [0, 1, 2]
+    assert list(rows["scene_seed"]) == [0, 1, 2]  # the same schedule, continued
+    assert LeRobotDataset(REPO_ID, root=folder).meta.total_episodes == 3
+    assert main(["study", "analyze", str(folder), "--output", str(tmp_path / "analysis")]) == 0
+    assert len(pd.read_csv(tmp_path / "analysis" / "trials.csv")) == 3
+    with pytest.raises(SystemExit, match="recorded with participant='P01', not 'P02'"):
+        main([*cmd[:-4], "--participant", "P02", "--record", str(folder), "--resume"])

@@ -28,6 +28,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+class UsageError(Exception):
+    """A bad option value found after parsing: printed as one ``error:`` line, exit status 2 (as argparse's)."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rtv3", description="RT-V3 shared control on ManiSkill3 and LeRobot.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -45,7 +49,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     module = importlib.import_module(f"rtv3_maniskill.cli.{args._module}")
-    return int(module.run(args) or 0)
+    try:
+        return int(module.run(args) or 0)
+    except UsageError as err:
+        print(f"rtv3 {args.command}: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

@@ -12,6 +12,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from rtv3_maniskill.cli import UsageError
+
+STUDY_METHODS = ("direct", "ho", "rtv3")
+"""The methods a person can drive with (``rtv3 teleop --method``)."""
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="study_command", metavar="{plan,analyze}", required=True)
@@ -45,6 +50,17 @@ def run(args: argparse.Namespace) -> int:
 
     if args.study_command == "plan":
         methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+        unknown = [m for m in methods if m not in STUDY_METHODS]
+        if unknown or not methods:
+            raise UsageError(f"--methods: unknown method(s) {', '.join(unknown) or '(none given)'}; "
+                             f"a study compares {', '.join(STUDY_METHODS)}")
+        for name in ("participants", "trials_per_block"):
+            if getattr(args, name) < 1:
+                raise UsageError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+        if args.practice < 0:
+            raise UsageError(f"--practice must be >= 0, got {args.practice}")
+        if args.output.exists() and args.output.is_dir():
+            raise UsageError(f"--output {args.output} is a folder; give the schedule's CSV file name")
         rows = study.plan_study(args.participants, methods, args.trials_per_block, args.practice,
                                 args.scene_seed, args.seed)
         path = study.write_csv(args.output, rows, study.PLAN_FIELDS)
@@ -53,7 +69,10 @@ def run(args: argparse.Namespace) -> int:
     for folder in args.sessions:
         if not folder.is_dir():
             raise SystemExit(f"error: {folder} is not a folder (expected a session recorded by rtv3 teleop --record)")
-    trials = study.load_trials(args.sessions)
+    try:
+        trials = study.load_trials(args.sessions)
+    except (FileNotFoundError, ValueError, KeyError) as err:
+        raise SystemExit(f"error: {str(err).strip() or type(err).__name__}") from None
     if not trials:
         raise SystemExit("error: the sessions hold no trials")
     methods = sorted({t["method"] for t in trials})

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from rtv3_maniskill.cli import UsageError
 from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
 from rtv3_maniskill.datasets.hub import HubPushError, check_repo_id, push_dataset
 
@@ -23,6 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--participant", default="P0", help="participant id written with every trial")
     parser.add_argument("--record", type=Path, default=None,
                         help="record the session as a LeRobot dataset into this new folder (+ sessions.csv)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the session recorded in --record (same options) with its next trial")
     parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
                         help="with --record: push the recorded session to this Hugging Face Hub dataset repo "
                              "(OWNER/NAME) when it ends")
@@ -42,29 +45,62 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from rtv3_maniskill.experiments.grasp_trial import TrialConfig
     from rtv3_maniskill.experiments.teleop_session import SessionConfig, TeleopSession
+    from rtv3_maniskill.shared_control.simulated_users import USERS
 
     if args.trials < 1:
-        raise SystemExit(f"error: --trials must be >= 1, got {args.trials}")
+        raise UsageError(f"--trials must be >= 1, got {args.trials}")
+    if not args.timeout > 0:
+        raise UsageError(f"--timeout must be a positive number of seconds, got {args.timeout}")
+    kind, _, user = args.input.strip().lower().partition(":")
+    if kind not in ("keyboard", "gamepad", "simulated") or (kind == "simulated") != bool(user):
+        raise UsageError(f"--input {args.input!r}: expected keyboard, gamepad or simulated:NAME")
+    if kind == "simulated" and user not in USERS:
+        raise UsageError(f"--input {args.input!r}: unknown simulated user {user!r}; known: {', '.join(sorted(USERS))}")
+    if kind == "gamepad":  # before the scene is built: a missing pad is found in a second
+        from rtv3_maniskill.experiments.teleop_inputs import GamepadInput
+
+        try:
+            GamepadInput()
+        except RuntimeError as err:
+            raise SystemExit(f"error: --input gamepad: {err}") from None
+    if args.method == "rtv3":
+        from rtv3_maniskill.policies.rtv3.checkpoints import CheckpointError, resolve_checkpoint
+
+        try:
+            resolve_checkpoint(args.policy_path)
+        except CheckpointError as err:
+            raise SystemExit(f"error: {err}") from None
     if args.headless and not args.input.startswith("simulated:"):
         raise SystemExit(f"error: --headless needs a simulated input (--input simulated:NAME), got {args.input!r}")
     if args.push_to_hub is not None:
         if args.record is None:
-            raise SystemExit("error: --push-to-hub needs --record DIR (the session to push)")
+            raise UsageError("--push-to-hub needs --record DIR (the session to push)")
         try:
             check_repo_id(args.push_to_hub)
         except ValueError as err:
             raise SystemExit(f"error: {err}") from None
-    if args.record is not None and args.record.exists():
-        raise SystemExit(f"error: {args.record} already exists; record each session into a new folder")
+    if args.resume and args.record is None:
+        raise UsageError("--resume needs --record DIR (the session to continue)")
+    if args.record is not None and args.record.exists() and not args.resume:
+        raise SystemExit(f"error: {args.record} already exists; record each session into a new folder, or continue "
+                         "it with --resume")
     config = SessionConfig(
         method=args.method, input=args.input, scene_seed=args.scene_seed, trials=args.trials,
-        participant=args.participant, record=args.record, headless=args.headless,
+        participant=args.participant, record=args.record, resume=args.resume, headless=args.headless,
         realtime=None if args.realtime == "auto" else args.realtime == "on", policy_path=args.policy_path,
         **scene_settings(args), target_grasp=args.target_grasp, user_seed=args.user_seed,
         screenshot=args.screenshot, screenshot_step=args.screenshot_step,
         trial_config=TrialConfig(timeout_s=args.timeout),
     )
-    results = TeleopSession(config).run()
+    try:
+        session = TeleopSession(config)
+    except (FileNotFoundError, ValueError, RuntimeError) as err:  # checkpoint, gamepad, display
+        raise SystemExit(f"error: {str(err).strip().splitlines()[0]}") from None
+    try:
+        results = session.run()
+    except KeyboardInterrupt:
+        print("\ninterrupted: the trials finished so far are kept" + (f" in {args.record}" if args.record else ""))
+        return 130
     counts: dict[str, int] = {}
     for r in results:
         counts[r.outcome] = counts.get(r.outcome, 0) + 1

@@ -21,6 +21,7 @@ history, point cloud, grasps, action = the TCP body twist realised over the step
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -70,31 +71,51 @@ def session_features(num_points: int, max_grasps: int, num_classes: int = DEFAUL
 class SessionRecorder:
     """Buffers one trial's frames and writes it as a LeRobot episode when the trial ends.
 
+    Every finished trial is durable: its episode is written and the dataset finalized (parquet
+    footers, episode metadata) before its ``sessions.csv`` row, so a session killed at any moment
+    keeps every finished trial in a form ``LeRobotDataset`` loads, and ``resume=True`` continues it
+    (the dataset is reopened as LeRobot resumes a recording: each later trial goes to new files).
+
     Args:
-        root: the session folder; must not exist yet (LeRobot creates it).
+        root: the session folder; must not exist yet (LeRobot creates it), unless ``resume``.
         num_points, max_grasps: N and M of the env's cloud and grasp set.
         num_classes: K, the class-weight width (longer weight vectors are refused).
-        settings: the session's settings, written to ``session.json``.
+        settings: the session's settings, written to ``session.json`` (a resumed session must have the
+            same; ``ValueError`` names the first that differs).
+        resume: continue the session recorded in ``root``; :attr:`trials` is then the number of
+            finished trials (a trial cut by the kill is recorded again).
     """
 
     def __init__(self, root: str | Path, num_points: int, max_grasps: int, num_classes: int = DEFAULT_NUM_CLASSES,
-                 settings: dict[str, Any] | None = None) -> None:
+                 settings: dict[str, Any] | None = None, resume: bool = False) -> None:
         import datasets as hf_datasets
-        from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
         from rtv3_maniskill.records import RecordStore
 
         self.root = Path(root)
-        if self.root.exists():
-            raise FileExistsError(f"the session folder {self.root} already exists; record each session into a new one")
+        settings = json.loads(json.dumps(settings or {}, default=str))
         hf_datasets.disable_progress_bars()
         self.num_classes = num_classes
-        spec = session_features(num_points, max_grasps, num_classes)
-        self.dataset = LeRobotDataset.create(REPO_ID, fps=features.FPS, features=spec, root=self.root,
-                                             robot_type="panda", use_videos=False)
-        (self.root / SESSION_JSON).write_text(json.dumps(settings or {}, indent=2, default=str))
+        if resume:
+            self._check_resumable(settings)
+            if not (self.root / "meta" / "episodes").is_dir():  # killed before its first trial ended: start again
+                shutil.rmtree(self.root)
+                resume = False
+            else:
+                self.dataset = self._open()
+        if not resume:
+            from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+            if self.root.exists():
+                raise FileExistsError(f"the session folder {self.root} already exists; record each session into a new "
+                                      "one, or continue it with --resume")
+            spec = session_features(num_points, max_grasps, num_classes)
+            self.dataset = LeRobotDataset.create(REPO_ID, fps=features.FPS, features=spec, root=self.root,
+                                                 robot_type="panda", use_videos=False)
+            self.dataset.meta.metadata_buffer_size = 1  # each episode's metadata is written with it
+            (self.root / SESSION_JSON).write_text(json.dumps(settings, indent=2))
         self.records = RecordStore(self.root / SESSIONS_CSV, SESSION_FIELDS, key=("trial",))
-        self.trials = 0
+        self.trials = len(self.records.rows)
         self._frames: list[dict[str, Any]] = []
         self._trial: dict[str, Any] | None = None
         self._closed = False
@@ -164,6 +185,8 @@ class SessionRecorder:
             })
         self.dataset.save_episode()
         episode = self.dataset.meta.total_episodes - 1
+        self.dataset.finalize()  # durable now: footers and the episode's metadata on disk
+        self.dataset = self._open()  # the next trial resumes the recording in new files
         self.records.append(dict(trial=self.trials, episode_index=episode, task=trial["task"], outcome=outcome,
                                  steps=len(frames), duration_s=f"{duration_s:.2f}", contacts=contacts,
                                  **{k: meta.get(k, "") for k in SESSION_FIELDS[2:8]}))
@@ -178,6 +201,30 @@ class SessionRecorder:
         self._closed = True
         self.dataset.finalize()
         self.records.close()
+
+    def _open(self) -> Any:
+        """The recorded dataset, opened to record more episodes after its last one."""
+        from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+        dataset = LeRobotDataset(REPO_ID, root=self.root)
+        dataset.meta.metadata_buffer_size = 1
+        dataset.episode_buffer = dataset.create_episode_buffer()
+        return dataset
+
+    def _check_resumable(self, settings: dict[str, Any]) -> None:
+        if not (self.root / SESSION_JSON).is_file() or not (self.root / "meta" / "info.json").is_file():
+            raise FileNotFoundError(f"{self.root} holds no recorded session to resume (no {SESSION_JSON} and "
+                                    "meta/info.json); start it without --resume")
+        recorded = json.loads((self.root / SESSION_JSON).read_text())
+        for key in sorted(set(recorded) | set(settings)):
+            if recorded.get(key) != settings.get(key):
+                raise ValueError(f"{self.root} was recorded with {key}={recorded.get(key)!r}, not "
+                                 f"{settings.get(key)!r}: resume it with the same options")
+        if not (self.root / "meta" / "episodes").is_dir() and (self.root / SESSIONS_CSV).is_file():
+            from rtv3_maniskill.records import RecordStore
+
+            if RecordStore.read(self.root / SESSIONS_CSV, SESSION_FIELDS):
+                raise ValueError(f"{self.root}: sessions.csv lists trials but the dataset holds no episode")
 
 
 __all__ = ["ASSIST_MODES", "BUTTON_EVENTS", "OUTCOMES", "SESSION_FIELDS", "SESSIONS_CSV", "SessionRecorder",

@@ -767,6 +767,8 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     if not serial and policy is not None:
         raise BenchmarkError("a policy object cannot be sent to worker processes: give policy_path with workers > 1")
     output = config.output
+    if output.exists() and not output.is_dir():
+        raise BenchmarkError(f"--output {output} is a file, not a folder; give a folder for the results")
     output.mkdir(parents=True, exist_ok=True)
     policy_path = None
     if _needs_policy(config) and (policy is None or config.policy_path is not None):

@@ -129,7 +129,12 @@ def _frames(folder: Path) -> Any:
     if not files:
         raise FileNotFoundError(f"{folder} holds no LeRobot data (data/*/*.parquet): not a recorded session")
     columns = ["episode_index", "frame_index", features.STATE, USER_TWIST, "assist_mode", "button_events"]
-    return pd.concat([pd.read_parquet(f, columns=columns) for f in files]).sort_values(["episode_index", "frame_index"])
+    try:
+        frames = [pd.read_parquet(f, columns=columns) for f in files]
+    except (KeyError, ValueError, OSError) as err:
+        raise ValueError(f"{folder} is not a recorded session: its data lacks the session columns or cannot be read "
+                         f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+    return pd.concat(frames).sort_values(["episode_index", "frame_index"])
 
 
 def load_trials(folders: Sequence[str | Path]) -> list[dict[str, Any]]:

@@ -35,6 +35,8 @@ class SessionConfig:
     trials: int = 1
     participant: str = "P0"
     record: Path | None = None
+    resume: bool = False
+    """Continue the session recorded in ``record`` (same settings) with its next trial."""
     headless: bool = False
     realtime: bool | None = None
     """Pace steps at 20 Hz (default: for a person, not for a simulated user)."""
@@ -107,7 +109,7 @@ class TeleopSession:
         if config.record is not None:
             from rtv3_maniskill.datasets.session_recorder import SessionRecorder
 
-            self.recorder = SessionRecorder(config.record, num_points, max_grasps, settings=dict(
+            self.recorder = SessionRecorder(config.record, num_points, max_grasps, resume=config.resume, settings=dict(
                 method=config.method, input=config.input, participant=config.participant, scene_seed=config.scene_seed,
                 trials=config.trials, timeout_s=config.trial_config.timeout_s, scene_type=config.scene_type,
                 **({"object_source": config.object_source} if config.object_source != "procedural" else {})))
@@ -117,8 +119,9 @@ class TeleopSession:
     def run(self) -> list[TrialResult]:
         """Play ``config.trials`` trials (Esc or closing the window aborts); returns their results."""
         results = []
+        first = 0 if self.recorder is None else self.recorder.trials  # a resumed session goes on from there
         try:
-            for trial in range(self.config.trials):
+            for trial in range(first, self.config.trials):
                 results.append(self.run_trial(trial))
                 if self.quit:
                     break

@@ -311,7 +311,10 @@ class GraspClutterEnv(BaseEnv):
                                     device=self.device)
             index = (draws.reshape(-1) * counts).long().clamp(max=counts - 1)
         else:
-            index = torch.as_tensor(requested, dtype=torch.long, device=self.device).reshape(-1).expand(len(env_idx))
+            values = np.asarray(requested).reshape(-1)
+            if values.dtype.kind not in "iuf" or not np.all(np.isfinite(values)) or np.any(values != np.round(values)):
+                raise ValueError(f"target_grasp_index must be a whole number (or one per sub-scene), got {requested!r}")
+            index = torch.as_tensor(values.astype(np.int64), device=self.device).expand(len(env_idx))
             bad = (index < 0) | (index >= counts)
             if bad.any():
                 raise ValueError(
