@@ -1,8 +1,10 @@
 """The ``rtv3 teleop`` window (pygame): the rendered scene and a side panel with the session's state.
 
 The panel shows the method, the assistance mode (coloured), the task text, the grasp phase and
-gripper, elapsed time, contacts, the class weights (RT-V3: top classes and entropy bounds; HO:
-the goal belief) and the key layout. Without a display set ``SDL_VIDEODRIVER=dummy``.
+gripper, elapsed time, contacts, the achieved control and display rates, the class weights (RT-V3:
+top classes and entropy bounds; HO: the goal belief) and the key layout. Over the scene: a ring
+on the target object and, for RT-V3, the grasp candidates the prior aims at (pre-grasp to grasp,
+drawn as thick as the belief in them). Without a display set ``SDL_VIDEODRIVER=dummy``.
 """
 
 from __future__ import annotations
@@ -45,16 +47,20 @@ class TeleopDisplay:
     def _text(self, text: str, pos: tuple[int, int], color=(235, 235, 235), big: bool = False) -> None:
         self.screen.blit((self.big if big else self.font).render(text, True, color), pos)
 
-    def draw(self, frame: np.ndarray | None, state: dict[str, Any]) -> None:
+    def draw(self, frame: np.ndarray | None, state: dict[str, Any], overlay: dict[str, Any] | None = None) -> None:
         """Show ``frame (H, W, 3)`` uint8 (None keeps the last one) and the panel from ``state``
-        (method, mode, task, phase, gripper, time, timeout, contacts, trial, diagnostics)."""
+        (method, mode, task, phase, gripper, time, timeout, contacts, trial, rates, diagnostics).
+        ``overlay`` (pixels of ``frame``): ``target (2,)``, the target object's centre; ``grasps``: rows
+        ``(u0, v0, u1, v1, weight)``, pre-grasp to grasp of the candidates the prior aims at."""
         pg = self.pygame
         w, h = self.scene_size
         if frame is not None:
             surface = pg.surfarray.make_surface(np.ascontiguousarray(np.asarray(frame)[..., :3].swapaxes(0, 1)))
+            scale = (w / surface.get_width(), h / surface.get_height())
             if surface.get_size() != (w, h):
                 surface = pg.transform.smoothscale(surface, (w, h))
             self.screen.blit(surface, (0, 0))
+            self._overlay(overlay or {}, scale)
         pg.draw.rect(self.screen, (25, 25, 30), (w, 0, PANEL_WIDTH, h))
         x, y = w + 12, 10
         mode = state.get("mode") or "none"
@@ -70,6 +76,9 @@ class TeleopDisplay:
                    f"contacts: {state.get('contacts', 0)}", (x, y))
         y += 22
         self._text(f"input: {state.get('input', '')}", (x, y))
+        y += 22
+        self._text(f"control {state.get('control_hz', 0.0):4.1f} Hz   display {state.get('display_hz', 0.0):4.1f} Hz",
+                   (x, y), (150, 220, 150))
         y += 30
         y = self._weights(state.get("diagnostics", {}), x, y)
         for line in KEY_HELP:
@@ -77,6 +86,17 @@ class TeleopDisplay:
         if state.get("outcome"):
             self._text(f"trial over: {state['outcome']}", (12, 12), (255, 255, 255), big=True)
         pg.display.flip()
+
+    def _overlay(self, overlay: dict[str, Any], scale: tuple[float, float]) -> None:
+        pg = self.pygame
+        sx, sy = scale
+        for u0, v0, u1, v1, weight in overlay.get("grasps", ()):
+            width = max(1, int(round(1 + 5 * float(weight))))
+            pg.draw.line(self.screen, (255, 210, 40), (u0 * sx, v0 * sy), (u1 * sx, v1 * sy), width)
+            pg.draw.circle(self.screen, (255, 210, 40), (u1 * sx, v1 * sy), width + 1)
+        if overlay.get("target") is not None:
+            u, v = overlay["target"]
+            pg.draw.circle(self.screen, (255, 60, 200), (u * sx, v * sy), 16, 3)
 
     def _weights(self, diagnostics: dict[str, Any], x: int, y: int) -> int:
         weights = diagnostics.get("class_weights", diagnostics.get("belief"))

@@ -10,6 +10,7 @@ outcome (success, timeout, collision, unmatched); the trial is recorded as one L
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from rtv3_maniskill import features
+from rtv3_maniskill import features, se3
 from rtv3_maniskill.datasets.demonstrations import describe_grasp, state_vector
 from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_speed_limits, make_method, render_frame
 from rtv3_maniskill.experiments.grasp_actions import EVENTS, GRIPPER_CLOSED, GraspActionConfig, GraspActions
@@ -74,6 +75,50 @@ def _class_weights(diagnostics: dict) -> np.ndarray | None:
     return None if weights is None else np.asarray(weights, dtype=np.float32)
 
 
+MAX_FRAME_GAP_S = 0.25
+"""Longest time (s) the window shows one frame while the control loop runs at 20 Hz."""
+
+
+def _rate(times: deque) -> float:
+    """Events per second over the times in ``times`` (0 with fewer than two)."""
+    return (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 and times[-1] > times[0] else 0.0
+
+
+class _SceneOverlay:
+    """Pixels of the target object and the grasp candidates in the window's camera, for one trial."""
+
+    def __init__(self, base: Any) -> None:
+        camera = base.scene.human_render_cameras["render_camera"]
+        params = camera.get_params()
+        self.extrinsic = params["extrinsic_cv"][0].double().cpu().numpy()  # (3, 4) world -> camera
+        self.intrinsic = params["intrinsic_cv"][0].double().cpu().numpy()  # (3, 3)
+        self.base = base
+        target = int(base.grasp_sets[0].object_ids[int(base.target_grasp_index[0])])
+        self.target_actor = base.objects[0][target]
+        self.target_centre = base.layouts[0].objects[target].collision_mesh().centroid  # object frame
+        grasps = base.grasp_poses[0].double().cpu()
+        ends = torch.stack([features.pregrasp_poses(grasps)[:, :3, 3], grasps[:, :3, 3]], 1)  # (M, 2, 3)
+        self.grasp_pixels = self.project(ends.reshape(-1, 3).numpy()).reshape(-1, 4)
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """``(K, 3)`` world points -> ``(K, 2)`` pixel coordinates (u right, v down)."""
+        cam = points @ self.extrinsic[:, :3].T + self.extrinsic[:, 3]
+        pix = cam @ self.intrinsic.T
+        return pix[:, :2] / np.maximum(pix[:, 2:3], 1e-6)
+
+    def draw(self, diagnostics: dict[str, Any]) -> dict[str, Any]:
+        """The display's ``overlay``: the target object now, and the candidates the prior aims at."""
+        pose = self.target_actor.pose
+        rotation = se3.quat_to_matrix(pose.q[0].double().cpu()).numpy()
+        centre = rotation @ self.target_centre + pose.p[0].double().cpu().numpy()
+        grasps = []
+        belief = diagnostics.get("grasp_belief")
+        for i in diagnostics.get("shown_grasps", ()):
+            weight = 1.0 if belief is None else float(belief[int(i)])
+            grasps.append((*self.grasp_pixels[int(i)], weight))
+        return dict(target=self.project(centre[None])[0], grasps=grasps)
+
+
 class TeleopSession:
     """Builds the env, method, input, window and recorder of a :class:`SessionConfig`; :meth:`run` plays it."""
 
@@ -114,6 +159,8 @@ class TeleopSession:
                 trials=config.trials, timeout_s=config.trial_config.timeout_s, scene_type=config.scene_type,
                 **({"object_source": config.object_source} if config.object_source != "procedural" else {})))
         self.quit = False
+        self.rates: dict[str, float] = {}
+        """Achieved control and display rates (Hz) over the last steps of the last trial."""
         self._shots = 0
 
     def run(self) -> list[TrialResult]:
@@ -174,11 +221,19 @@ class TeleopSession:
         realtime = (not self.simulated) if cfg.realtime is None else cfg.realtime
         panel = dict(method=cfg.method, input=cfg.input, trial=f"{trial + 1}/{cfg.trials}", task=task,
                      timeout=cfg.trial_config.timeout_s, mode="none", phase="free", gripper="open")
+        # Warm up before the clock starts: the first assisted step and the first frame cost the most.
+        env.method.step(features.observation_from_env(obs), None)
+        env.method.reset()
+        overlay = _SceneOverlay(base) if self.display is not None else None
+        render_cost = 0.0
         if self.display is not None:
-            self.display.draw(render_frame(env), dict(panel, time=0.0, contacts=0))
+            start = time.perf_counter()
+            self.display.draw(render_frame(env), dict(panel, time=0.0, contacts=0), overlay.draw({}))
+            render_cost = time.perf_counter() - start
             self.display.events()  # keys pressed while the scene loaded do not count
         print(f"trial {trial + 1}: scene {scene_seed}, {task}: started", flush=True)
         outcome, info, step = None, {}, 0
+        steps_at, frames_at = deque(maxlen=20), deque(maxlen=20)  # times of the last steps and frames
         next_tick = time.perf_counter()
         while outcome is None:
             events = self.display.events() if self.display is not None else []
@@ -207,22 +262,38 @@ class TeleopSession:
                 self.recorder.add_step(state, user.raw.numpy(), info["robot_twist"].numpy(), info["assistance_mode"],
                                        _class_weights(diagnostics), pressed, self.actions.gripper,
                                        bool(info["success"][0]))
-            if self.display is not None:
+            steps_at.append(time.perf_counter())
+            next_tick += features.DT
+            shot = cfg.screenshot is not None and cfg.screenshot_step == step
+            # The display takes the time the control loop leaves: a frame when it fits before the next tick,
+            # and at least every MAX_FRAME_GAP_S, so that the person always sees the arm move.
+            now = time.perf_counter()
+            if self.display is not None and (not realtime or shot or outcome is not None
+                                             or next_tick - now > render_cost
+                                             or now - (frames_at[-1] if frames_at else 0.0) > MAX_FRAME_GAP_S):
+                start = time.perf_counter()
+                frames_at.append(start)
                 panel.update(mode=info["assistance_mode"] or "none", phase=self.actions.phase,
-                             gripper="closed" if closed else "open")
+                             gripper="closed" if closed else "open", control_hz=_rate(steps_at),
+                             display_hz=_rate(frames_at))
                 self.display.draw(render_frame(env), dict(panel, time=step * features.DT,
                                                           contacts=self.monitor.contacts,
-                                                          diagnostics=diagnostics, outcome=outcome))
-                if cfg.screenshot is not None and cfg.screenshot_step == step:
+                                                          diagnostics=diagnostics, outcome=outcome),
+                                  overlay.draw(diagnostics))
+                render_cost = 0.7 * render_cost + 0.3 * (time.perf_counter() - start)
+                if shot:
                     self.display.screenshot(cfg.screenshot)
             if realtime:
-                next_tick += features.DT
                 time.sleep(max(0.0, next_tick - time.perf_counter()))
+            else:
+                next_tick = time.perf_counter()
+        self.rates = dict(control_hz=_rate(steps_at), display_hz=_rate(frames_at))
         episode = None
         if self.recorder is not None and step > 0:
             episode = self.recorder.end_trial(outcome, state_vector(obs), step * features.DT, self.monitor.contacts)
         print(f"trial {trial + 1}: scene {scene_seed}, {task}: {outcome} after {step * features.DT:.1f} s "
-              f"({self.monitor.contacts} contact steps)", flush=True)
+              f"({self.monitor.contacts} contact steps; control {self.rates['control_hz']:.1f} Hz, display "
+              f"{self.rates['display_hz']:.1f} Hz over the last steps)", flush=True)
         return TrialResult(trial, scene_seed, outcome, step, self.monitor.contacts, task, episode)
 
     def _clamp(self, twist: torch.Tensor) -> torch.Tensor:

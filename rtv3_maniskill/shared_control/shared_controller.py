@@ -539,7 +539,8 @@ class SharedController:
     def describe(self, index: int = 0) -> dict[str, Any]:
         """The last step of batch element ``index``: mode, class weights (posterior where shared,
         the prior's otherwise), the prior's weights, entropy bounds, OOD flag, surface distance and,
-        with grasp candidates, the indices of those the prior was shown and their number in all."""
+        with grasp candidates, the indices of those the prior was shown, their number in all and, once the
+        user has commanded, ``grasp_belief (M,)``: the belief over the candidates (probabilities)."""
         d = self.last_diagnostics
         if d is None:
             return {"mode": ""}
@@ -547,6 +548,9 @@ class SharedController:
         if d.shown_grasps is not None and d.grasp_candidates is not None:
             grasps = {"shown_grasps": torch.nonzero(d.shown_grasps[index]).flatten().numpy(),
                       "grasp_candidates": int(d.grasp_candidates[index])}
+            evidence = None if self._goal_belief is None else self._goal_belief.evidence
+            if evidence is not None and index < evidence.shape[0]:  # (M,) the belief over the candidates
+                grasps["grasp_belief"] = torch.softmax(evidence[index], -1).numpy().copy()
         return {
             "mode": d.modes[index],
             "class_weights": d.class_weights[index].numpy().copy(),

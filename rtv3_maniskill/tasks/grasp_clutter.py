@@ -167,8 +167,10 @@ class GraspClutterEnv(BaseEnv):
 
     @property
     def _default_human_render_camera_configs(self):
-        pose = sapien_utils.look_at([0.35, 0.45, 0.45], [WORKSPACE_CENTER[0] - 0.05, 0.0, 0.08])
-        return CameraConfig("render_camera", pose, 512, 512, 1.0, 0.01, 100)
+        # From the front side and above: the arm reaches in from the side of the frame, not over the
+        # workspace; the hand at the ready pose and the objects are both in view.
+        pose = sapien_utils.look_at([WORKSPACE_CENTER[0] + 0.27, 0.42, 0.58], [WORKSPACE_CENTER[0] - 0.09, -0.02, 0.17])
+        return CameraConfig("render_camera", pose, 512, 512, 0.85, 0.01, 100)
 
     # ------------------------------------------------------------------ loading
 
