@@ -24,6 +24,7 @@ from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_spe
 from rtv3_maniskill.experiments.grasp_actions import EVENTS, GRIPPER_CLOSED, GraspActionConfig, GraspActions
 from rtv3_maniskill.experiments.grasp_trial import GraspTrialMonitor, TrialConfig
 from rtv3_maniskill.experiments.teleop_inputs import SimulatedOperator
+from rtv3_maniskill.experiments.teleop_render import scene_state
 
 
 @dataclass
@@ -73,10 +74,6 @@ class TrialResult:
 def _class_weights(diagnostics: dict) -> np.ndarray | None:
     weights = diagnostics.get("class_weights", diagnostics.get("belief"))
     return None if weights is None else np.asarray(weights, dtype=np.float32)
-
-
-MAX_FRAME_GAP_S = 0.25
-"""Longest time (s) the window shows one frame while the control loop runs at 20 Hz."""
 
 
 def _rate(times: deque) -> float:
@@ -136,9 +133,16 @@ class TeleopSession:
         # a 320 px view (the window scales it to 512): rendering is the slowest part on a CPU
         render = dict(render_mode="rgb_array", human_render_camera_configs=dict(width=320, height=320))
         render = render if not config.headless else {}
-        self.env = SharedControlEnv(num_points=num_points, max_grasps=max_grasps, scene_type=config.scene_type,
-                                    object_source=config.object_source, execution=config.execution,
-                                    self_contacts=config.self_contacts, rendered_context=True, **render)
+        scene = dict(num_points=num_points, max_grasps=max_grasps, scene_type=config.scene_type,
+                     object_source=config.object_source, execution=config.execution, self_contacts=config.self_contacts)
+        # Paced for a person, the window's frames are rendered in a process of their own (teleop_render).
+        self.renderer = None
+        if not config.headless and self._realtime:
+            from rtv3_maniskill.experiments.teleop_render import RenderProcess
+
+            camera = render["human_render_camera_configs"]
+            self.renderer = RenderProcess({**scene, "human_render_camera_configs": camera})
+        self.env = SharedControlEnv(rendered_context=True, **scene, **render)
         self.env.method = make_method(config.method, controller_speed_limits(self.env.base), policy=policy)
         self.speed_limits = controller_speed_limits(self.env.base)
         self.display = None
@@ -160,7 +164,7 @@ class TeleopSession:
                 **({"object_source": config.object_source} if config.object_source != "procedural" else {})))
         self.quit = False
         self.rates: dict[str, float] = {}
-        """Achieved control and display rates (Hz) over the last steps of the last trial."""
+        """Achieved control and display rates (Hz) of the last trial: steps and frames over its wall time."""
         self._shots = 0
 
     def run(self) -> list[TrialResult]:
@@ -176,10 +180,19 @@ class TeleopSession:
             self.close()
         return results
 
+    @property
+    def _realtime(self) -> bool:
+        """Paced at 20 Hz: ``config.realtime``, by default for a person and not for a simulated user."""
+        if self.config.realtime is not None:
+            return self.config.realtime
+        return not self.config.input.strip().lower().startswith("simulated:")
+
     def close(self) -> None:
         """Finalize the recording and close the window and env."""
         if self.recorder is not None:
             self.recorder.close()
+        if self.renderer is not None:
+            self.renderer.close()
         if self.display is not None:
             self.display.close()
         self.env.close()
@@ -218,23 +231,23 @@ class TeleopSession:
             self.recorder.start_trial(context, task, participant=cfg.participant, method=cfg.method,
                                       input=cfg.input, scene_seed=scene_seed, target_grasp_index=target_index,
                                       target_object=self.monitor.target_object)
-        realtime = (not self.simulated) if cfg.realtime is None else cfg.realtime
+        realtime = self._realtime
+        if self.renderer is not None:
+            self.renderer.set_scene(scene_seed)
         panel = dict(method=cfg.method, input=cfg.input, trial=f"{trial + 1}/{cfg.trials}", task=task,
                      timeout=cfg.trial_config.timeout_s, mode="none", phase="free", gripper="open")
         # Warm up before the clock starts: the first assisted step and the first frame cost the most.
         env.method.step(features.observation_from_env(obs), None)
         env.method.reset()
         overlay = _SceneOverlay(base) if self.display is not None else None
-        render_cost = 0.0
         if self.display is not None:
-            start = time.perf_counter()
             self.display.draw(render_frame(env), dict(panel, time=0.0, contacts=0), overlay.draw({}))
-            render_cost = time.perf_counter() - start
             self.display.events()  # keys pressed while the scene loaded do not count
         print(f"trial {trial + 1}: scene {scene_seed}, {task}: started", flush=True)
         outcome, info, step = None, {}, 0
         steps_at, frames_at = deque(maxlen=20), deque(maxlen=20)  # times of the last steps and frames
-        next_tick = time.perf_counter()
+        next_tick = clock_start = time.perf_counter()
+        frames = 0
         while outcome is None:
             events = self.display.events() if self.display is not None else []
             if self._handle_window_events(events):
@@ -265,35 +278,37 @@ class TeleopSession:
             steps_at.append(time.perf_counter())
             next_tick += features.DT
             shot = cfg.screenshot is not None and cfg.screenshot_step == step
-            # The display takes the time the control loop leaves: a frame when it fits before the next tick,
-            # and at least every MAX_FRAME_GAP_S, so that the person always sees the arm move.
-            now = time.perf_counter()
-            if self.display is not None and (not realtime or shot or outcome is not None
-                                             or next_tick - now > render_cost
-                                             or now - (frames_at[-1] if frames_at else 0.0) > MAX_FRAME_GAP_S):
-                start = time.perf_counter()
-                frames_at.append(start)
+            # Paced (a person at the controls), frames come from the render process whenever one is done;
+            # unpaced (a simulated user), every step is rendered here, as is a screenshot's or the last step.
+            frame = None
+            if self.display is not None:
+                if self.renderer is not None and not shot and outcome is None:
+                    self.renderer.show(*scene_state(base))
+                    frame = self.renderer.frame()
+                else:
+                    frame = render_frame(env)
+            if frame is not None:
+                frames_at.append(time.perf_counter())
+                frames += 1
                 panel.update(mode=info["assistance_mode"] or "none", phase=self.actions.phase,
                              gripper="closed" if closed else "open", control_hz=_rate(steps_at),
                              display_hz=_rate(frames_at))
-                self.display.draw(render_frame(env), dict(panel, time=step * features.DT,
-                                                          contacts=self.monitor.contacts,
-                                                          diagnostics=diagnostics, outcome=outcome),
-                                  overlay.draw(diagnostics))
-                render_cost = 0.7 * render_cost + 0.3 * (time.perf_counter() - start)
+                self.display.draw(frame, dict(panel, time=step * features.DT, contacts=self.monitor.contacts,
+                                              diagnostics=diagnostics, outcome=outcome), overlay.draw(diagnostics))
                 if shot:
                     self.display.screenshot(cfg.screenshot)
             if realtime:
                 time.sleep(max(0.0, next_tick - time.perf_counter()))
             else:
                 next_tick = time.perf_counter()
-        self.rates = dict(control_hz=_rate(steps_at), display_hz=_rate(frames_at))
+        wall = max(time.perf_counter() - clock_start, 1e-9)
+        self.rates = dict(control_hz=step / wall, display_hz=frames / wall)
         episode = None
         if self.recorder is not None and step > 0:
             episode = self.recorder.end_trial(outcome, state_vector(obs), step * features.DT, self.monitor.contacts)
         print(f"trial {trial + 1}: scene {scene_seed}, {task}: {outcome} after {step * features.DT:.1f} s "
               f"({self.monitor.contacts} contact steps; control {self.rates['control_hz']:.1f} Hz, display "
-              f"{self.rates['display_hz']:.1f} Hz over the last steps)", flush=True)
+              f"{self.rates['display_hz']:.1f} Hz)", flush=True)
         return TrialResult(trial, scene_seed, outcome, step, self.monitor.contacts, task, episode)
 
     def _clamp(self, twist: torch.Tensor) -> torch.Tensor:
