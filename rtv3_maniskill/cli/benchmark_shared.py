@@ -30,9 +30,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated simulated users "
                              "(ideal, noisy, laggy, mode_switching, single_dof, low_dof)")
     parser.add_argument("--methods", type=_names, default="direct,ho,rtv3",
-                        help="comma-separated assistance methods (direct, ho, rtv3, oracle, oracle-goal, rtv3-goal; "
-                             "the oracles run RT-V3's fusion with a prior that knows every feasible goal / the true "
-                             "goal; rtv3-goal is RT-V3 with its prior shown only the true target grasp)")
+                        help="comma-separated assistance methods (direct, ho, rtv3, oracle, oracle-goal, oracle-plan, "
+                             "rtv3-goal; the oracles run RT-V3's fusion with a prior that knows every goal / the true "
+                             "goal / the true goal and the motion planner's path there; rtv3-goal is RT-V3 with its "
+                             "prior shown only the true target grasp)")
     parser.add_argument("--seed", type=int, default=9,
                         help="scene seed block (default 9, the test block: held out from training scenes of "
                              "`rtv3 generate --seed 0..8`)")

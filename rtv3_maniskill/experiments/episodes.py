@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import ENV_ID, features
+from rtv3_maniskill.experiments.plan_oracle import PlanOraclePrior
 from rtv3_maniskill.experiments.planning import describe_contact, trial_outcome
 from rtv3_maniskill.shared_control.assistance import METHOD_NAMES, AssistanceMethod
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
@@ -72,7 +73,8 @@ def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None
                 config: SharedControlConfig | None = None) -> AssistanceMethod:
     """Assistance method by name: ``"direct"``, ``"ho"``, ``"rtv3"`` (needs ``policy``) or an oracle
     (``"oracle"``, ``"oracle_goal"``: RT-V3's controller around an :class:`OraclePrior` whose goals the
-    caller sets before each episode) or ``"rtv3_goal"`` (RT-V3 whose prior is shown only the target
+    caller sets before each episode; ``"oracle_plan"``: around a :class:`PlanOraclePrior`, whose planner
+    and goal the caller sets) or ``"rtv3_goal"`` (RT-V3 whose prior is shown only the target
     grasp, :class:`TargetShownPrior`, which the caller sets before each episode), with the
     env controller's ``speed_limits`` (m/s, rad/s); ``config`` sets the RT-V3 controller (its speed
     limits are replaced by the env's).
@@ -89,6 +91,9 @@ def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None
     if key in ("oracle", "oracle_goal"):  # goals set per trial: method.policy.set_goals(...)
         config = dataclasses.replace(config or SharedControlConfig(), max_linear_speed=lin, max_angular_speed=ang)
         return SharedController(OraclePrior(max_linear_speed=lin, max_angular_speed=ang), config)
+    if key == "oracle_plan":  # planner and goal set per trial: method.policy.set_goal(planner, pregrasp)
+        config = dataclasses.replace(config or SharedControlConfig(), max_linear_speed=lin, max_angular_speed=ang)
+        return SharedController(PlanOraclePrior(max_linear_speed=lin, max_angular_speed=ang), config)
     if key in ("rtv3", "rt_v3", "rtv3_goal"):
         if policy is None:
             raise ValueError(f"method {name!r} needs a policy (load one with rtv3_maniskill.policies.rtv3.load_policy)")

@@ -27,6 +27,14 @@ def aimed_grasp(grasp_pose: np.ndarray, reference_tcp: np.ndarray) -> np.ndarray
     return canonicalize_symmetric(np.asarray(grasp_pose)[None], np.asarray(reference_tcp))[0]
 
 
+def aimed_pregrasp(planner, grasp_pose) -> np.ndarray:
+    """``(4, 4)`` the pre-grasp of the twin of ``grasp_pose`` (world) a user aims at from the ready pose."""
+    reference = planner.forward_kinematics(READY_QPOS)
+    grasp = aimed_grasp(np.asarray(grasp_pose.detach().cpu() if hasattr(grasp_pose, "detach") else grasp_pose,
+                                   dtype=np.float64), reference)
+    return pregrasp_poses(torch.from_numpy(grasp)).numpy()
+
+
 def check_goal(planner, grasp_pose: np.ndarray, target_object: int, reference_tcp: np.ndarray,
                seed: int = 0) -> str:
     """One of :data:`GOAL_CHECKS` for the grasp ``grasp_pose (4, 4)`` (world) of ``target_object``.

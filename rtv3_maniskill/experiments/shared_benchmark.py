@@ -66,10 +66,14 @@ _LATER_RESULT_FIELDS = {"qp_infeasible_steps": "0", "contact": ""}
 order they were added), with the value a file written before them reads as."""
 SUMMARY_FIELDS = ("user", "method", "trials", "SR", "CR", "TOR", "reached", "mean_iterations",
                   "paired_trials", "wins", "losses", "mcnemar_p", "oracle_gain_share", "oracle_gain_share_low",
-                  "oracle_gain_share_high")
+                  "oracle_gain_share_high", "oracle_plan_gain_share", "oracle_plan_gain_share_low",
+                  "oracle_plan_gain_share_high")
+CEILINGS = ("oracle", "oracle_plan")
+"""The methods whose gain over Direct a summary shares out: the straight-line and the planning oracle."""
 DEFAULT_USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
 DEFAULT_METHODS = ("direct", "ho", "rtv3")
 METHOD_LABELS = {"direct": "Direct", "ho": "HO", "rtv3": "RT-V3", "oracle": "Oracle", "oracle_goal": "Oracle (goal)",
+                 "oracle_plan": "Oracle (plan)",
                  "rtv3_goal": "RT-V3 (goal)"}
 def method_label(name: str) -> str:
     """Table label of a method name: ``"direct+neoss"`` -> ``"Direct w. NeoSS"``."""
@@ -208,7 +212,7 @@ class BenchmarkConfig:
     @property
     def uses_shared_controller(self) -> bool:
         """Whether a method runs the RT-V3 fusion (RT-V3, RT-V3 told the goal, or an oracle)."""
-        return any(m in ("rtv3", "rtv3_goal", "oracle", "oracle_goal") for m in self.methods)
+        return any(m in ("rtv3", "rtv3_goal", "oracle", "oracle_goal", "oracle_plan") for m in self.methods)
 
     def scene_seeds(self) -> list[int]:
         return scene_seeds(self.seed, self.scenes)
@@ -401,7 +405,7 @@ def summarize(rows: Iterable[dict[str, Any]], users: Sequence[str] | None = None
     Every row counts; ``users`` / ``methods`` only set the order (names not listed follow, sorted)."""
     rows = list(rows)
     paired = paired_with_baseline(rows)
-    shares = oracle_gain_share(rows)
+    shares = {ceiling: oracle_gain_share(rows, ceiling=ceiling) for ceiling in CEILINGS}
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for row in rows:
         groups.setdefault((row["user"], row["method"]), []).append(row)
@@ -424,16 +428,16 @@ def summarize(rows: Iterable[dict[str, Any]], users: Sequence[str] | None = None
                 reached=100.0 * sum(int(t["success"]) for t in trials) / n,
                 mean_iterations=float(np.mean([int(t["steps"]) for t in wins])) if wins else math.nan,
                 **paired.get((u, m), dict(paired_trials=None, wins=None, losses=None, mcnemar_p=None)),
-                **_share_fields(shares.get((u, m))),
+                **{k: v for c in CEILINGS for k, v in _share_fields(shares[c].get((u, m)), c).items()},
             ))
     return out
 
 
-def _share_fields(share: dict[str, Any] | None) -> dict[str, Any]:
-    """The summary's columns of :func:`oracle_gain_share` (None where it has no entry)."""
+def _share_fields(share: dict[str, Any] | None, ceiling: str = "oracle") -> dict[str, Any]:
+    """The summary's columns of :func:`oracle_gain_share` towards ``ceiling`` (None where it has no entry)."""
     share = share or {}
-    return dict(oracle_gain_share=share.get("share"), oracle_gain_share_low=share.get("share_low"),
-                oracle_gain_share_high=share.get("share_high"))
+    return {f"{ceiling}_gain_share": share.get("share"), f"{ceiling}_gain_share_low": share.get("share_low"),
+            f"{ceiling}_gain_share_high": share.get("share_high")}
 
 
 def _percent(fraction: float) -> str:
@@ -499,17 +503,20 @@ def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | 
         "(their simulation; their Direct took 81 / 58 / 118 / 129 iterations for noisy / laggy / "
         "mode-switching / single-DoF).\n"
     )
-    shares = [s for s in summary if s.get("oracle_gain_share") is not None]
-    if shares:
+    for ceiling in CEILINGS:
+        shares = [s for s in summary if s.get(f"{ceiling}_gain_share") is not None]
+        if not shares:
+            continue
+        name = method_label(ceiling)
         notes += (
-            "\nShare of the oracle's gain over Direct, (SR - Direct SR) / (oracle SR - Direct SR), on the goals "
+            f"\nShare of the {name} gain over Direct, (SR - Direct SR) / ({name} SR - Direct SR), on the goals "
             "all three ran, with a 95 % paired bootstrap interval over those goals:\n\n"
-            "| User | Method | share of the oracle's gain % | 95 % interval |\n|---|---|---:|---:|\n"
+            f"| User | Method | share of the {name} gain % | 95 % interval |\n|---|---|---:|---:|\n"
         )
         for s in shares:
-            interval = ("-" if s["oracle_gain_share_low"] is None else
-                        f"{_percent(s['oracle_gain_share_low'])} to {_percent(s['oracle_gain_share_high'])}")
-            share = _percent(s["oracle_gain_share"])
+            low, high = s[f"{ceiling}_gain_share_low"], s[f"{ceiling}_gain_share_high"]
+            interval = "-" if low is None else f"{_percent(low)} to {_percent(high)}"
+            share = _percent(s[f"{ceiling}_gain_share"])
             notes += f"| {s['user']} | {method_label(s['method'])} | {share} | {interval} |\n"
     return "\n".join(lines) + "\n" + notes
 
@@ -669,16 +676,21 @@ class _SceneRunner:
         Returns the new goal-check rows and the result rows.
         """
         from rtv3_maniskill.experiments.episodes import run_episode
-        from rtv3_maniskill.experiments.goals import check_scene_goals
+        from rtv3_maniskill.experiments.goals import aimed_pregrasp, check_scene_goals
         from rtv3_maniskill.shared_control.simulated_users import make_user
 
         config, env = self.config, self.env
         env.reset(seed=scene_seed)
         count = int((env.base.grasps_mask[0] > 0.5).sum())
         new_checks: list[dict[str, Any]] = []
+        planner = None
+        if "oracle_plan" in self.methods or any(i not in checks for i in range(count)):
+            from rtv3_maniskill.datasets.planner import PandaPlanner
+
+            planner = PandaPlanner(env.base.layouts[0])
         if any(i not in checks for i in range(count)):  # a scene not checked yet (or only in part)
             checks = dict(checks)
-            for i, check in enumerate(check_scene_goals(env.base, seed=scene_seed)):
+            for i, check in enumerate(check_scene_goals(env.base, planner, seed=scene_seed)):
                 if i not in checks:
                     checks[i] = check
                     new_checks.append(dict(scene_seed=scene_seed, grasp_index=i, check=check))
@@ -701,6 +713,8 @@ class _SceneRunner:
                         method.policy.set_goals(pregrasps[feasible] if method_name == "oracle" else pregrasps[[g]])
                     elif method_name == "rtv3_goal":  # the learned prior told the target
                         method.policy.set_target(g)
+                    elif method_name == "oracle_plan":  # the true goal and the planner of this scene
+                        method.policy.set_goal(planner, aimed_pregrasp(planner, env.base.grasp_poses[0, g]))
                     result = run_episode(env, method, make_user(user_name, u_seed), max_steps=config.max_steps,
                                          seed=scene_seed, options=trial_options(g),
                                          stop_on_contact=config.stop_on_contact)
