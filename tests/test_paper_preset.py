@@ -108,11 +108,12 @@ def test_a_small_paper_preset_benchmark_runs_every_candidate_and_counts_both_goa
 
     out = tmp_path / "bench"
     assert main(["benchmark-shared", "--preset", "paper", "--seed", "8", "--scenes", "1", "--goals-per-scene", "2",
-                 "--users", "ideal", "--methods", "direct,oracle", "--output", str(out), "--no-progress"]) == 0
+                 "--users", "ideal", "--methods", "direct,oracle,oracle-plan", "--output", str(out),
+                 "--no-progress"]) == 0
     config = json.loads((out / "config.json").read_text())
     assert config["goals"] == "all" and config["object_source"] == "ycb" and config["scene_type"] == "packed_ycb"
     with open(out / "results.csv") as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == 4 and {r["method"] for r in rows} == {"direct", "oracle"}
+    assert len(rows) == 6 and {r["method"] for r in rows} == {"direct", "oracle", "oracle_plan"}
     summary = (out / "summary.md").read_text()
-    assert "rule `all`" in summary and "pass the arm-reach check" in summary
+    assert "rule `all`" in summary and "pass the arm-reach check" in summary and "| Oracle (plan) |" in summary
