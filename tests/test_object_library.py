@@ -176,8 +176,11 @@ def test_benchmark_shared_takes_the_object_source(tmp_path):
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    assert parser.parse_args(["--objects", "random_urdfs"]).objects == "random_urdfs"
-    assert parser.parse_args([]).objects == "procedural"
+    from rtv3_maniskill.cli.scene_args import scene_settings
+
+    assert scene_settings(parser.parse_args(["--objects", "random_urdfs"]))["object_source"] == "random_urdfs"
+    assert scene_settings(parser.parse_args([]))["object_source"] == "procedural"  # the easy preset's
+    assert scene_settings(parser.parse_args(["--preset", "paper"]))["object_source"] == "ycb"
     default = BenchmarkConfig(output=tmp_path, methods=["direct"], users=["noisy"])
     urdfs = BenchmarkConfig(output=tmp_path, methods=["direct"], users=["noisy"], object_source="random_urdfs")
     assert "object_source" not in default.fingerprint(None), "runs made before the option still resume"

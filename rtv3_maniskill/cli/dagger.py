@@ -9,8 +9,14 @@ import argparse
 import json
 from pathlib import Path
 
-from rtv3_maniskill.cli.scene_args import add_executor_arguments, add_scene_arguments, resolve_scene_arguments
-from rtv3_maniskill.datasets.hub import HubPushError, check_repo_id, push_dataset
+from rtv3_maniskill.cli.scene_args import (
+    add_executor_arguments,
+    add_push_argument,
+    add_scene_arguments,
+    check_push_argument,
+    push_if_asked,
+    resolve_scene_arguments,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,9 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")
     parser.add_argument("--workers", type=int, default=1, help="parallel CPU workers (processes or Ray actors)")
     add_executor_arguments(parser)
-    parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
-                        help="after the run, push the dataset to this Hugging Face Hub dataset repo (OWNER/NAME), with "
-                             "a dataset card naming the task, the features and this command")
+    add_push_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,11 +47,7 @@ def run(args: argparse.Namespace) -> int:
     from rtv3_maniskill.scene_pool import SceneWorkerError
 
     resolve_scene_arguments(args)
-    if args.push_to_hub is not None:
-        try:
-            check_repo_id(args.push_to_hub)
-        except ValueError as err:
-            raise SystemExit(f"error: {err}") from None
+    check_push_argument(args)
 
     from rtv3_maniskill.policies.rtv3.checkpoints import CheckpointError, resolve_checkpoint
 
@@ -72,11 +72,6 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, SceneWorkerError) as err:  # a folder holding a round made with other settings, a worker
         raise SystemExit(f"error: {err}") from None
     print(json.dumps({k: v for k, v in summary.items() if k != "config"}, indent=2))
-    if args.push_to_hub is not None:
-        try:
-            push_dataset(config.output, args.push_to_hub, "DAgger relabels (the motion planner re-planning from states "
-                         "visited by the RT-V3 prior and by simulated users)")
-        except HubPushError as err:
-            raise SystemExit(f"error: {err}") from None
-        print(f"pushed {config.output} to the Hub dataset repo {args.push_to_hub}")
+    push_if_asked(args, config.output, "DAgger relabels (the motion planner re-planning from states visited by the "
+                  "RT-V3 prior and by simulated users)")
     return 0

@@ -14,8 +14,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rtv3_maniskill.cli.scene_args import add_executor_arguments, add_scene_arguments, resolve_scene_arguments
-from rtv3_maniskill.datasets.hub import HubPushError, check_repo_id, push_dataset
+from rtv3_maniskill.cli.scene_args import (
+    add_executor_arguments,
+    add_push_argument,
+    add_scene_arguments,
+    check_push_argument,
+    push_if_asked,
+    resolve_scene_arguments,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,9 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="scene i uses seed SEED*100000 + i")
     parser.add_argument("--workers", type=int, default=1, help="parallel CPU workers (processes or Ray actors)")
     add_executor_arguments(parser)
-    parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
-                        help="after the run, push the dataset to this Hugging Face Hub dataset repo (OWNER/NAME), with "
-                             "a dataset card naming the task, the features and this command")
+    add_push_argument(parser)
     add_scene_arguments(parser, execution=False)
     parser.add_argument("--grasps-per-scene", type=int, default=None, help="cap on targets per scene (default all)")
     parser.add_argument("--num-points", type=int, default=512,
@@ -157,11 +161,7 @@ def run(args: argparse.Namespace) -> int:
 
     resolve_scene_arguments(args)
     _validate(args)
-    if args.push_to_hub is not None:
-        try:
-            check_repo_id(args.push_to_hub)
-        except ValueError as err:
-            raise SystemExit(f"error: {err}") from None
+    check_push_argument(args)
     args.output = args.output.expanduser().absolute()
     try:  # refuses a folder with attempts made under other settings (not one whose run failed before any)
         with StagingArea(args.output, settings=_settings(args)) as staging:
@@ -221,10 +221,5 @@ def run(args: argparse.Namespace) -> int:
     )
     (args.output / "rtv3_summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))
-    if args.push_to_hub is not None:
-        try:
-            push_dataset(args.output, args.push_to_hub, "Motion-planner demonstrations (OMPL RRT-Connect + TOPP-RA)")
-        except HubPushError as err:
-            raise SystemExit(f"error: {err}") from None
-        print(f"pushed {args.output} to the Hub dataset repo {args.push_to_hub}")
+    push_if_asked(args, args.output, "Motion-planner demonstrations (OMPL RRT-Connect + TOPP-RA)")
     return 0

@@ -1,4 +1,5 @@
-"""The scene options every command shares: ``--preset`` and the settings it fills in.
+"""The options the commands share: ``--preset`` and the settings it fills in, the scene pool's
+executor, and ``--push-to-hub``.
 
 ``--preset paper`` (the authors' protocol) or ``--preset easy`` sets the layout, the object set,
 the twist execution and the contact rule (and, for the benchmark, the goal rule); an explicit
@@ -10,6 +11,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from rtv3_maniskill.datasets.hub import HubPushError, check_repo_id, push_dataset
 from rtv3_maniskill.presets import EXECUTIONS, PRESETS, get_preset
 
 SCENE_TYPE_CHOICES = ("pile", "packed", "packed_ycb", "mixed")
@@ -46,6 +48,33 @@ def add_executor_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ray-address", default=None,
                         help="with --executor ray: the cluster to join (e.g. 'auto' or HOST:6379); default: a "
                              "local Ray instance with --workers CPUs")
+
+
+def add_push_argument(parser: argparse.ArgumentParser, what: str = "the dataset") -> None:
+    """``--push-to-hub REPO_ID``."""
+    parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
+                        help=f"after the run, push {what} to this Hugging Face Hub dataset repo (OWNER/NAME), with "
+                             "a dataset card naming the task, the features and this command")
+
+
+def check_push_argument(args: argparse.Namespace) -> None:
+    """Refuse a malformed ``--push-to-hub`` before any work."""
+    if getattr(args, "push_to_hub", None) is not None:
+        try:
+            check_repo_id(args.push_to_hub)
+        except ValueError as err:
+            raise SystemExit(f"error: {err}") from None
+
+
+def push_if_asked(args: argparse.Namespace, root, kind: str) -> None:
+    """Push the dataset in ``root`` when ``--push-to-hub`` was given (``kind``: what its episodes are)."""
+    if getattr(args, "push_to_hub", None) is None:
+        return
+    try:
+        push_dataset(root, args.push_to_hub, kind)
+    except HubPushError as err:
+        raise SystemExit(f"error: {err}") from None
+    print(f"pushed {root} to the Hub dataset repo {args.push_to_hub}")
 
 
 def scene_settings(args: argparse.Namespace) -> dict[str, Any]:

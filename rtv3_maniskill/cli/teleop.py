@@ -11,8 +11,13 @@ import argparse
 from pathlib import Path
 
 from rtv3_maniskill.cli import UsageError
-from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
-from rtv3_maniskill.datasets.hub import HubPushError, check_repo_id, push_dataset
+from rtv3_maniskill.cli.scene_args import (
+    add_push_argument,
+    add_scene_arguments,
+    check_push_argument,
+    push_if_asked,
+    scene_settings,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -26,9 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="record the session as a LeRobot dataset into this new folder (+ sessions.csv)")
     parser.add_argument("--resume", action="store_true",
                         help="continue the session recorded in --record (same options) with its next trial")
-    parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
-                        help="with --record: push the recorded session to this Hugging Face Hub dataset repo "
-                             "(OWNER/NAME) when it ends")
+    add_push_argument(parser, "the recorded session (--record)")
     parser.add_argument("--timeout", type=float, default=90.0, help="seconds of simulated time per trial")
     parser.add_argument("--headless", action="store_true", help="no window (simulated input only)")
     parser.add_argument("--realtime", choices=["auto", "on", "off"], default="auto",
@@ -72,13 +75,9 @@ def run(args: argparse.Namespace) -> int:
             raise SystemExit(f"error: {err}") from None
     if args.headless and not args.input.startswith("simulated:"):
         raise SystemExit(f"error: --headless needs a simulated input (--input simulated:NAME), got {args.input!r}")
-    if args.push_to_hub is not None:
-        if args.record is None:
-            raise UsageError("--push-to-hub needs --record DIR (the session to push)")
-        try:
-            check_repo_id(args.push_to_hub)
-        except ValueError as err:
-            raise SystemExit(f"error: {err}") from None
+    if args.push_to_hub is not None and args.record is None:
+        raise UsageError("--push-to-hub needs --record DIR (the session to push)")
+    check_push_argument(args)
     if args.resume and args.record is None:
         raise UsageError("--resume needs --record DIR (the session to continue)")
     if args.record is not None and args.record.exists() and not args.resume:
@@ -107,11 +106,6 @@ def run(args: argparse.Namespace) -> int:
     print("outcomes: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
     if args.record is not None:
         print(f"recorded {len(results)} trial(s) into {args.record} (LeRobot dataset + sessions.csv)")
-    if args.push_to_hub is not None:
-        try:
-            push_dataset(args.record, args.push_to_hub, "Shared-control teleoperation trials (user twist, assistance "
-                         "and the executed twist per step; sessions.csv has each trial's outcome)")
-        except HubPushError as err:
-            raise SystemExit(f"error: {err}") from None
-        print(f"pushed {args.record} to the Hub dataset repo {args.push_to_hub}")
+    push_if_asked(args, args.record, "Shared-control teleoperation trials (user twist, assistance and the executed "
+                  "twist per step; sessions.csv has each trial's outcome)")
     return 0
