@@ -193,3 +193,26 @@ def test_a_killed_session_keeps_its_finished_trials_and_resumes(tmp_path):
     assert len(pd.read_csv(tmp_path / "analysis" / "trials.csv")) == 3
     with pytest.raises(SystemExit, match="recorded with participant='P01', not 'P02'"):
         main([*cmd[:-4], "--participant", "P02", "--record", str(folder), "--resume"])
+
+
+def test_ctrl_c_ends_a_session_cleanly_and_keeps_its_trials(tmp_path):
+    import signal
+
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from rtv3_maniskill.datasets.lerobot_export import REPO_ID
+
+    folder = tmp_path / "P02_direct"
+    proc = subprocess.Popen([RTV3, "teleop", "--method", "direct", "--input", "simulated:ideal", "--headless",
+                             "--trials", "3", "--timeout", "6", "--record", str(folder)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    sessions = folder / "sessions.csv"
+    deadline = time.time() + 300
+    while time.time() < deadline and not (sessions.is_file() and len(sessions.read_text().splitlines()) >= 2):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-2000:]
+    assert "Traceback" not in out + err and "interrupted" in out + err
+    assert LeRobotDataset(REPO_ID, root=folder).meta.total_episodes == len(pd.read_csv(sessions)) >= 1

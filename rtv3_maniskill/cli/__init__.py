@@ -54,6 +54,9 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as err:
         print(f"rtv3 {args.command}: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
+    except KeyboardInterrupt:  # Ctrl-C: what each command has written so far is kept (its records resume)
+        print(f"\nrtv3 {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":
