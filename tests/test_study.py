@@ -48,7 +48,8 @@ def test_analyze_sessions_recorded_with_simulated_users(tmp_path, capsys):
     for participant, method, user in (("P01", "direct", "ideal"), ("P02", "ho", "ideal")):
         folder = tmp_path / f"{participant}_{method}"
         assert main(["teleop", "--method", method, "--input", f"simulated:{user}", "--headless", "--trials", "2",
-                     "--timeout", "10", "--participant", participant, "--record", str(folder)]) == 0
+                     "--timeout", "10", "--participant", participant, "--record", str(folder),
+                     "--preset", "easy", "--scene-type", "pile"]) == 0  # scenes the ideal user grasps in
         sessions.append(str(folder))
     out = tmp_path / "analysis"
     assert main(["study", "analyze", *sessions, "--output", str(out)]) == 0
