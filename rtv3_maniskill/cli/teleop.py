@@ -8,6 +8,7 @@ Keyboard (the pygame window must have the focus): ``w/s a/d q/e`` move the hand 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from rtv3_maniskill.cli import UsageError
@@ -95,10 +96,10 @@ def run(args: argparse.Namespace) -> int:
         session = TeleopSession(config)
     except (FileNotFoundError, ValueError, RuntimeError) as err:  # checkpoint, gamepad, display
         raise SystemExit(f"error: {str(err).strip().splitlines()[0]}") from None
-    try:
-        results = session.run()
-    except KeyboardInterrupt:
-        print("\ninterrupted: the trials finished so far are kept" + (f" in {args.record}" if args.record else ""))
+    results = session.run()
+    if session.interrupted:
+        print("interrupted: the trials finished so far are kept" + (f" in {args.record}" if args.record else ""),
+              file=sys.stderr)
         return 130
     counts: dict[str, int] = {}
     for r in results:

@@ -9,6 +9,8 @@ outcome (success, timeout, collision, unmatched); the trial is recorded as one L
 
 from __future__ import annotations
 
+import signal
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -163,6 +165,8 @@ class TeleopSession:
                 trials=config.trials, timeout_s=config.trial_config.timeout_s, scene_type=config.scene_type,
                 **({"object_source": config.object_source} if config.object_source != "procedural" else {})))
         self.quit = False
+        self.interrupted = False
+        """Ctrl-C came: the trial in progress ends as ``aborted`` (recorded as Esc would) and the session ends."""
         self.rates: dict[str, float] = {}
         """Achieved control and display rates (Hz) of the last trial: steps and frames over its wall time."""
         self._shots = 0
@@ -171,14 +175,23 @@ class TeleopSession:
         """Play ``config.trials`` trials (Esc or closing the window aborts); returns their results."""
         results = []
         first = 0 if self.recorder is None else self.recorder.trials  # a resumed session goes on from there
+        # Ctrl-C is a request to stop, read between control steps, not an exception thrown into the middle of
+        # a write: the session ends at the next step with everything recorded so far intact.
+        main_thread = threading.current_thread() is threading.main_thread()  # signal handlers live there only
+        previous = signal.signal(signal.SIGINT, self._interrupt) if main_thread else None
         try:
             for trial in range(first, self.config.trials):
                 results.append(self.run_trial(trial))
-                if self.quit:
+                if self.quit or self.interrupted:
                     break
         finally:
+            if main_thread:
+                signal.signal(signal.SIGINT, previous)
             self.close()
         return results
+
+    def _interrupt(self, signum: int, frame: Any) -> None:
+        self.interrupted = True
 
     @property
     def _realtime(self) -> bool:
@@ -250,7 +263,7 @@ class TeleopSession:
         frames = 0
         while outcome is None:
             events = self.display.events() if self.display is not None else []
-            if self._handle_window_events(events):
+            if self._handle_window_events(events) or self.interrupted:
                 outcome = "aborted"
                 break
             tcp = base.tcp_pose_matrix[0].detach().cpu().double()
