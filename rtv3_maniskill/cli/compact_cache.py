@@ -74,9 +74,12 @@ def _build(args: argparse.Namespace) -> dict:
     if args.max_mib <= 0:
         raise SystemExit(f"error: --max-mib must be positive, got {args.max_mib}")
     if args.policy_path is not None:
-        for name in ("config.json", "model.safetensors"):
-            if not (args.policy_path / name).is_file():
-                raise SystemExit(f"error: --policy.path {args.policy_path} holds no {name}")
+        from rtv3_maniskill.policies.rtv3.checkpoints import CheckpointError, resolve_checkpoint
+
+        try:  # a folder or a Hub repo id
+            args.policy_path = resolve_checkpoint(args.policy_path)
+        except CheckpointError as err:
+            raise SystemExit(f"error: {err}") from None
         config = PreTrainedConfig.from_pretrained(args.policy_path)
         if not isinstance(config, RTV3Config):
             raise SystemExit(f"error: --policy.path {args.policy_path} is a '{config.type}' policy, not 'rtv3'")
