@@ -161,6 +161,19 @@ def test_grasp_buttons_lift_the_target_and_a_miss_fails(tmp_path):
     assert first["class_weights"].shape == (64,)
 
 
+def _session_after_its_first_trial(cmd: list[str], folder: Path) -> tuple[subprocess.Popen, Path]:
+    """``rtv3 CMD`` started as a process, returned once its first trial is in ``sessions.csv``."""
+    log = open(folder.parent / f"{folder.name}.log", "w")  # a file, not a pipe: a full pipe would stall the run
+    proc = subprocess.Popen([RTV3, *cmd], stdout=log, stderr=subprocess.STDOUT, text=True,
+                            env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    log.close()
+    sessions = folder / "sessions.csv"
+    deadline = time.time() + 300
+    while time.time() < deadline and not (sessions.is_file() and len(sessions.read_text().splitlines()) >= 2):
+        time.sleep(0.05)
+    return proc, sessions
+
+
 def test_a_killed_session_keeps_its_finished_trials_and_resumes(tmp_path):
     """SIGKILL during trial 2: trial 1 loads with LeRobot, --resume records trials 2 and 3, study analyze reads all."""
     import signal
@@ -173,12 +186,7 @@ def test_a_killed_session_keeps_its_finished_trials_and_resumes(tmp_path):
     folder = tmp_path / "P01_direct"
     cmd = ["teleop", "--method", "direct", "--input", "simulated:ideal", "--headless", "--trials", "3",
            "--timeout", "6", "--participant", "P01", "--record", str(folder)]
-    proc = subprocess.Popen([RTV3, *cmd], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            env=dict(os.environ, PYTHONWARNINGS="ignore"))
-    sessions = folder / "sessions.csv"
-    deadline = time.time() + 300
-    while time.time() < deadline and not (sessions.is_file() and len(sessions.read_text().splitlines()) >= 2):
-        time.sleep(0.05)
+    proc, sessions = _session_after_its_first_trial(cmd, folder)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert len(sessions.read_text().splitlines()) == 2, "killed during trial 2: one finished trial"
@@ -203,16 +211,12 @@ def test_ctrl_c_ends_a_session_cleanly_and_keeps_its_trials(tmp_path):
     from rtv3_maniskill.datasets.lerobot_export import REPO_ID
 
     folder = tmp_path / "P02_direct"
-    proc = subprocess.Popen([RTV3, "teleop", "--method", "direct", "--input", "simulated:ideal", "--headless",
-                             "--trials", "3", "--timeout", "6", "--record", str(folder)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=dict(os.environ, PYTHONWARNINGS="ignore"))
-    sessions = folder / "sessions.csv"
-    deadline = time.time() + 300
-    while time.time() < deadline and not (sessions.is_file() and len(sessions.read_text().splitlines()) >= 2):
-        time.sleep(0.05)
+    proc, sessions = _session_after_its_first_trial(
+        ["teleop", "--method", "direct", "--input", "simulated:ideal", "--headless", "--trials", "3", "--timeout", "6",
+         "--record", str(folder)], folder)
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err[-2000:]
-    assert "Traceback" not in out + err and "interrupted" in out + err
+    proc.wait(timeout=120)
+    output = (tmp_path / "P02_direct.log").read_text()
+    assert proc.returncode == 130, output[-2000:]
+    assert "Traceback" not in output and "interrupted" in output
     assert LeRobotDataset(REPO_ID, root=folder).meta.total_episodes == len(pd.read_csv(sessions)) >= 1
