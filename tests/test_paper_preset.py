@@ -117,3 +117,16 @@ def test_a_small_paper_preset_benchmark_runs_every_candidate_and_counts_both_goa
     assert len(rows) == 6 and {r["method"] for r in rows} == {"direct", "oracle", "oracle_plan"}
     summary = (out / "summary.md").read_text()
     assert "rule `all`" in summary and "pass the arm-reach check" in summary and "| Oracle (plan) |" in summary
+
+
+def test_packed_ycb_takes_a_ycb_style_mesh_folder_with_distinct_objects(tmp_path):
+    """ManiSkill's YCB folder holds `<id>/textured.obj` (and collision meshes, skipped): objects are named by folder."""
+    import trimesh
+
+    for i, name in enumerate(("002_master_chef_can", "003_cracker_box", "004_sugar_box", "005_tomato_soup_can")):
+        (tmp_path / name).mkdir()
+        trimesh.creation.box(extents=[0.05, 0.05 + 0.005 * i, 0.10]).export(tmp_path / name / "textured.obj")
+        trimesh.creation.box(extents=[0.05, 0.05, 0.10]).export(tmp_path / name / "collision.obj")
+    layout = generate_layout(make_object_set(str(tmp_path)), np.random.default_rng(0), "packed_ycb")
+    names = [o.name for o in layout.objects]
+    assert len(names) >= 3 and len(set(names)) == len(names) and all(n[:3].isdigit() for n in names)

@@ -152,6 +152,10 @@ class MeshFolderObjectSet:
             )
         self.coacd_threshold = coacd_threshold
         self._loaded: dict[Path, ObjectGeometry] = {}
+        # An object's name: its file's stem, or its folder's name where stems repeat (ManiSkill's YCB:
+        # every model is `<id>/textured.obj`), so that layouts asking for distinct objects get them.
+        stems = [p.stem for p in self.files]
+        self.names = {p: p.stem if stems.count(p.stem) == 1 else p.parent.name for p in self.files}
 
     def _load(self, path: Path) -> ObjectGeometry:
         if path not in self._loaded:
@@ -167,7 +171,7 @@ class MeshFolderObjectSet:
             mesh.apply_translation(offset)
             hulls = _convex_decomposition(mesh, f"{_file_digest(path)}-{scale:.5f}", self.coacd_threshold)
             shapes = [CollisionShape("convex", (), np.eye(4), h) for h in hulls]
-            obj = ObjectGeometry(name=path.stem, shapes=shapes, visual_mesh=mesh, mesh_file=str(path))
+            obj = ObjectGeometry(name=self.names[path], shapes=shapes, visual_mesh=mesh, mesh_file=str(path))
             obj.mesh_scale = scale  # type: ignore[attr-defined]
             obj.mesh_offset = offset  # type: ignore[attr-defined]
             self._loaded[path] = obj
