@@ -32,53 +32,60 @@ def _describe(err: BaseException) -> str:
     return f"{type(err).__name__}: {err}"
 
 
+# ----------------------------------------------------------------------------- one worker, any executor
+
+
+def _start(init: Callable[[Any], Any], setting: Any) -> tuple[Any, SceneWorkerError | None]:
+    """A worker's state, or the error it failed to start with (raised by its first job, not at start-up:
+    a process pool whose initializer raises only reports a dead process)."""
+    try:
+        return init(setting), None
+    except Exception as err:  # noqa: BLE001  (any failure of the worker's own set-up)
+        return None, SceneWorkerError(f"a scene worker failed to start: {_describe(err)}")
+
+
+def _call(job: Callable[[Any, Any], Any], state: Any, error: SceneWorkerError | None, item: Any) -> Any:
+    """``job(state, item)``, its failure (or the worker's start-up failure) as a :class:`SceneWorkerError`."""
+    if error is not None:
+        raise error
+    try:
+        return job(state, item)
+    except SceneWorkerError:
+        raise
+    except Exception as err:  # noqa: BLE001  (any failure of the job)
+        raise SceneWorkerError(f"a scene worker failed on {item!r:.80}: {_describe(err)}") from err
+
+
 # ----------------------------------------------------------------------------- local processes
 
 
 def _in_process(init, setting, job, items: list) -> Iterator[Any]:
-    _start_worker(init, setting)
-    state = _STATE.pop("state", None)
-    if "error" in _STATE:
-        raise _STATE.pop("error")
+    state, error = _start(init, setting)
     try:
         for item in items:
-            try:
-                result = job(state, item)
-            except BaseException as err:  # noqa: BLE001
-                if isinstance(err, (KeyboardInterrupt, SceneWorkerError)):
-                    raise
-                raise SceneWorkerError(f"a scene worker failed on {item!r:.80}: {_describe(err)}") from err
-            yield result
+            yield _call(job, state, error, item)
     finally:
         close = getattr(state, "close", None)
         if callable(close):
             close()
 
-_STATE: dict[str, Any] = {}
+
+_WORKER: dict[str, Any] = {}
+"""A spawned worker process's ``state`` and start-up ``error`` (:func:`_start_process`)."""
 
 
-def _start_worker(init: Callable[[Any], Any], setting: Any) -> None:
-    try:
-        _STATE["state"] = init(setting)
-    except BaseException as err:  # noqa: BLE001  (reported by the first job instead of killing the pool)
-        _STATE["error"] = SceneWorkerError(f"a scene worker failed to start: {_describe(err)}")
+def _start_process(init: Callable[[Any], Any], setting: Any) -> None:
+    _WORKER["state"], _WORKER["error"] = _start(init, setting)
 
 
-def _run_job(job: Callable[[Any, Any], Any], item: Any) -> Any:
-    if "error" in _STATE:
-        raise _STATE["error"]
-    try:
-        return job(_STATE["state"], item)
-    except SceneWorkerError:
-        raise
-    except BaseException as err:  # noqa: BLE001
-        raise SceneWorkerError(f"a scene worker failed on {item!r:.80}: {_describe(err)}") from None
+def _run_in_process(job: Callable[[Any, Any], Any], item: Any) -> Any:
+    return _call(job, _WORKER["state"], _WORKER["error"], item)
 
 
 def _local(init, setting, job, items: list, workers: int) -> Iterator[Any]:
-    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_start_worker,
+    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_start_process,
                                 initargs=(init, setting)) as pool:
-        futures = [pool.submit(_run_job, job, item) for item in items]
+        futures = [pool.submit(_run_in_process, job, item) for item in items]
         try:
             for future in cf.as_completed(futures):
                 try:
@@ -98,19 +105,10 @@ class _RayWorker:
     """A Ray actor holding one worker's state (made a remote class in :func:`_ray`)."""
 
     def __init__(self, init: Callable[[Any], Any], setting: Any) -> None:
-        self.error: SceneWorkerError | None = None
-        try:
-            self.state = init(setting)
-        except BaseException as err:  # noqa: BLE001
-            self.error = SceneWorkerError(f"a scene worker failed to start: {_describe(err)}")
+        self.state, self.error = _start(init, setting)
 
     def run(self, job: Callable[[Any, Any], Any], item: Any) -> Any:
-        if self.error is not None:
-            raise self.error
-        try:
-            return job(self.state, item)
-        except BaseException as err:  # noqa: BLE001
-            raise SceneWorkerError(f"a scene worker failed on {item!r:.80}: {_describe(err)}") from None
+        return _call(job, self.state, self.error, item)
 
 
 def _ray(init, setting, job, items: list, workers: int, address: str | None) -> Iterator[Any]:

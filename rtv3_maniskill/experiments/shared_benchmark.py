@@ -683,12 +683,13 @@ class _SceneRunner:
         env.reset(seed=scene_seed)
         count = int((env.base.grasps_mask[0] > 0.5).sum())
         new_checks: list[dict[str, Any]] = []
+        unchecked = any(i not in checks for i in range(count))  # a scene not checked yet (or only in part)
         planner = None
-        if "oracle_plan" in self.methods or any(i not in checks for i in range(count)):
+        if unchecked or "oracle_plan" in self.methods:
             from rtv3_maniskill.datasets.planner import PandaPlanner
 
             planner = PandaPlanner(env.base.layouts[0])
-        if any(i not in checks for i in range(count)):  # a scene not checked yet (or only in part)
+        if unchecked:
             checks = dict(checks)
             for i, check in enumerate(check_scene_goals(env.base, planner, seed=scene_seed)):
                 if i not in checks:
@@ -746,11 +747,6 @@ def _policy_path(config: BenchmarkConfig) -> Path:
     from rtv3_maniskill.policies.rtv3.checkpoints import resolve_checkpoint
 
     return resolve_checkpoint(config.policy_path)
-
-
-def _start_runner(config: BenchmarkConfig) -> _SceneRunner:
-    """A scene worker's state: its own env, methods and policy."""
-    return _SceneRunner(config)
 
 
 def _run_scene_job(runner: _SceneRunner, job: tuple[int, dict[int, str], set[tuple[str, ...]]]
@@ -830,7 +826,7 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
                 runner.run_scene(scene_seed, checks, done, on_checks=record_checks, on_plan=plan, on_trial=record_trial)
                 bar.update(len(done))  # the scene's trials finished in an earlier run
         else:
-            for new_checks, rows in run_scenes(_start_runner, config, _run_scene_job, jobs, workers=workers,
+            for new_checks, rows in run_scenes(_SceneRunner, config, _run_scene_job, jobs, workers=workers,
                                                executor=executor, ray_address=ray_address):
                 record_checks(new_checks)
                 for row in rows:
