@@ -191,6 +191,8 @@ class DaggerCollector:
                               reconfiguration_freq=0, max_episode_steps=10_000, **sizes)
         self.recorder = DemonstrationRecorder(expert_env, PandaPlanner, plan_timeout=config.plan_timeout)
         self.scene_seed: int | None = None
+        self.staging: Any = None
+        """The staging area a one-process run writes each rollout and relabel into (None: the run's process writes)."""
 
     def load_scene(self, scene_seed: int) -> list[int]:
         """Build the scene in both envs; the expert records with the rollout's rendered cloud.
@@ -279,6 +281,8 @@ class DaggerCollector:
         return episode
 
     def close(self) -> None:
+        if self.staging is not None:
+            self.staging.close()
         self.env.close()
         self.recorder.env.close()
 
@@ -288,14 +292,19 @@ def rollout_variant(driver_index: int, step: int | None = None) -> str:
     return f"r{driver_index}" if step is None else f"r{driver_index}t{step:03d}"
 
 
-def _init_worker(config: DaggerConfig) -> DaggerCollector:
-    """A scene worker's state: the collector with its envs, planner and policy."""
+def _init_worker(setting: tuple[DaggerConfig, bool]) -> DaggerCollector:
+    """A scene worker's state: the collector with its envs, planner and policy; with ``write_through``
+    (a one-process run) also the staging area, written as each rollout and relabel finishes."""
     import torch
 
+    from rtv3_maniskill.datasets.lerobot_export import StagingArea
     from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
 
+    config, write_through = setting
     torch.set_num_threads(1)
-    return DaggerCollector(config, load_policy(config.policy_path))
+    collector = DaggerCollector(config, load_policy(config.policy_path))
+    collector.staging = StagingArea(config.output) if write_through else None
+    return collector
 
 
 def _run_scene(collector: DaggerCollector, job: tuple[int, int, list[str]]) -> dict[str, Any]:
@@ -306,7 +315,7 @@ def _run_scene(collector: DaggerCollector, job: tuple[int, int, list[str]]) -> d
 
     scene_index, scene_seed, done = job
     config = collector.config
-    staged = StagedScene()
+    staged = collector.staging or StagedScene()
     done_keys = set(done)
     start = time.perf_counter()
     counts: Counter = Counter()
@@ -333,7 +342,8 @@ def _run_scene(collector: DaggerCollector, job: tuple[int, int, list[str]]) -> d
                 staged.save_success(result, variant=variant)
                 counts["success"] += 1
         staged.log_attempt(scene_seed, grasp, f"rollout_{rollout.outcome}", rollout.steps, variant=rollout_variant(d))
-    return dict(scene=scene_seed, counts=dict(counts), seconds=time.perf_counter() - start, staged=staged)
+    return dict(scene=scene_seed, counts=dict(counts), seconds=time.perf_counter() - start,
+                staged=staged if isinstance(staged, StagedScene) else None)
 
 
 def run_dagger(config: DaggerConfig, progress: bool = True, executor: str = "local",
@@ -362,9 +372,11 @@ def run_dagger(config: DaggerConfig, progress: bool = True, executor: str = "loc
     bar = tqdm(total=len(jobs), desc="dagger scenes", unit="scene", disable=not progress)
     try:
         with StagingArea(config.output) as staging:
-            for result in run_scenes(_init_worker, config, _run_scene, jobs, workers=config.workers,
+            write_through = config.workers == 1 and executor == "local"
+            for result in run_scenes(_init_worker, (config, write_through), _run_scene, jobs, workers=config.workers,
                                      executor=executor, ray_address=ray_address):
-                staging.write(result["staged"])
+                if result["staged"] is not None:
+                    staging.write(result["staged"])
                 total.update(result["counts"])
                 worker_seconds += result["seconds"]
                 bar.update(1)
