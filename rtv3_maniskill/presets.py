@@ -52,7 +52,7 @@ class ScenePreset:
 PRESETS: dict[str, ScenePreset] = {
     # Execution chosen on validation scenes (seed block 8) by the Direct success bands of the paper's
     # Table II: "capped" puts every user in its band; "tracked" leaves the noisy user 5-9 points
-    # below it (the authors' noise, 0.22 m/s per axis, is then executed unclipped). docs/RESULTS.md.
+    # below it (the authors' noise, 0.22 m/s per axis, is then executed unclipped). docs/RESULTS.md, "The paper preset".
     "paper": ScenePreset(scene_type="packed_ycb", object_source="ycb", execution="capped", self_contacts=False,
                          goals="all"),
     "easy": ScenePreset(scene_type="mixed", object_source="procedural", execution="capped", self_contacts=True,

@@ -6,7 +6,7 @@ over H = 12 frames, re-reading each frame's point cloud and grasps), or without 
 with ``--policy.training_cache=false`` (the data path alone). New: this tree with its defaults (one row
 per sample, windows cut from the policy's in-memory training cache). Both run LeRobot's own training
 script on the same dataset and batch size, with 1 data worker and 1 thread each by default (as the
-earlier measurement in docs/RESULTS.md), interleaved (old, new, new, old, ...) so that drifts of the
+measurement in docs/RESULTS.md, "Training throughput"), interleaved (old, new, new, old, ...) so that drifts of the
 machine's speed hit both alike.
 
 Samples/s of a run come from LeRobot's training log: every ``--log_freq`` steps it prints the mean

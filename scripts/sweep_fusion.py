@@ -27,8 +27,8 @@ DEFAULT_SETTINGS = (
     "missing_far:ood_covariance=predictive,ood_alpha=0.99,belief_memory=1.0,prior_covariance_scale=100,"
     "uncommanded_axes=missing_far",
 )
-"""The settings of the original sweep (docs/RESULTS.md, "Fusion settings": its ``tuned`` row is the
-``missing_far`` one here); the current ``tuned`` preset is added from ``FUSION_PRESETS``."""
+"""The settings of the original sweep (its ``tuned`` row is the ``missing_far`` one here); the current
+``tuned`` preset is added from ``FUSION_PRESETS``."""
 USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
 
 

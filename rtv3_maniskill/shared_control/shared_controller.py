@@ -142,7 +142,7 @@ class SharedControlConfig:
     prior_covariance_scale: float = 100.0
     """Factor on the prior's step-0 covariances (Sigma_z and Gamma_z) before the gate and the
     fusion. 1 (the paper) takes the prior as calibrated; a learned prior is calibrated on its
-    training data (docs/RESULTS.md, "step-0 calibration") but overconfident where its own closed
+    training data (`rtv3 evaluate prediction` reports its step-0 coverage) but overconfident where its own closed
     loop leads it (on DAgger states its maximum-likelihood scale is ~20:
     ``scripts/calibrate_prior_covariance.py``), and a larger factor gives the user's command more
     weight (Kalman gain ``K = s Sigma_z (s Sigma_z + S_u)^-1``). 100 was chosen on validation goals."""
@@ -157,8 +157,8 @@ class SharedControlConfig:
         """A named fusion (:data:`FUSION_PRESETS`), with ``overrides`` on top.
 
         ``"tuned"`` (the defaults) was chosen on validation scenes so that a prior that knows the
-        scene helps every simulated user and the shipped prior loses to Direct for none
-        (docs/RESULTS.md, "Fusion settings"); ``"paper"`` is the paper's reading: the gate under the
+        scene helps every simulated user and the shipped prior loses to Direct for none;
+        ``"paper"`` is the paper's reading: the gate under the
         class covariance at alpha 0.85, no memory of earlier commands, the prior's covariances as
         predicted (and a command's zero axes missing everywhere, as before ``"missing_far"``).
         """
