@@ -142,10 +142,9 @@ class SharedControlConfig:
     prior_covariance_scale: float = 100.0
     """Factor on the prior's step-0 covariances (Sigma_z and Gamma_z) before the gate and the
     fusion. 1 (the paper) takes the prior as calibrated; a learned prior is calibrated on its
-    training data (`rtv3 evaluate prediction` reports its step-0 coverage) but overconfident where its own closed
-    loop leads it (on DAgger states its maximum-likelihood scale is ~20:
-    ``scripts/calibrate_prior_covariance.py``), and a larger factor gives the user's command more
-    weight (Kalman gain ``K = s Sigma_z (s Sigma_z + S_u)^-1``). 100 was chosen on validation goals."""
+    training data (`rtv3 evaluate prediction` reports its step-0 coverage) but overconfident where
+    its own closed loop leads it (on DAgger states its maximum-likelihood scale is ~20), and a larger
+    factor gives the user's command more weight (Kalman gain ``K = s Sigma_z (s Sigma_z + S_u)^-1``). 100 was chosen on validation goals."""
     mode_search_starts: int = 3
     mode_search_iters: int = 10
     """Most mean-shift iterations of the mode search (:func:`posterior.mixture_mode`)."""
