@@ -144,7 +144,8 @@ class SharedControlConfig:
     fusion. 1 (the paper) takes the prior as calibrated; a learned prior is calibrated on its
     training data (`rtv3 evaluate prediction` reports its step-0 coverage) but overconfident where
     its own closed loop leads it (on DAgger states its maximum-likelihood scale is ~20), and a larger
-    factor gives the user's command more weight (Kalman gain ``K = s Sigma_z (s Sigma_z + S_u)^-1``). 100 was chosen on validation goals."""
+    factor gives the user's command more weight (Kalman gain ``K = s Sigma_z (s Sigma_z + S_u)^-1``).
+    100 was chosen on validation goals."""
     mode_search_starts: int = 3
     mode_search_iters: int = 10
     """Most mean-shift iterations of the mode search (:func:`posterior.mixture_mode`)."""
