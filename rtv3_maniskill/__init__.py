@@ -14,16 +14,6 @@ ENV_ID = "GraspClutter-v1"
 MAX_EPISODE_STEPS = 150
 
 
-def make_grasp_clutter(**kwargs):
-    """gymnasium entry point of ``GraspClutter-v1``: loads the task (ManiSkill's own registration
-    replaces this lazy one) and builds the env through ManiSkill's registry."""
-    from mani_skill.utils.registration import make
-
-    import rtv3_maniskill.tasks  # noqa: F401  (replaces this lazy registration by ManiSkill's)
-
-    return make(ENV_ID, **kwargs)
-
-
 def _register_lazily() -> None:
     try:
         import gymnasium as gym
@@ -35,7 +25,7 @@ def _register_lazily() -> None:
         return
     gym.register(
         ENV_ID,
-        entry_point="rtv3_maniskill:make_grasp_clutter",
+        entry_point="rtv3_maniskill.tasks:make_grasp_clutter",
         max_episode_steps=MAX_EPISODE_STEPS,
         disable_env_checker=True,
         # The wrapper ManiSkill's own registration adds (truncation from the env's step count).

@@ -45,6 +45,12 @@ GRASPS_MASK = "observation.grasps_mask"
 """``(M,)`` 1.0 for a real candidate, 0.0 for padding."""
 ACTION = "action"
 """``(6,)`` end-effector body twist [v, w] realised over this step: log(T_t^-1 T_{t+1}) / dt."""
+GRIPPER_OPEN = 1.0
+"""Normalised gripper action (the last entry of ``action``) that holds the Panda's fingers open (0.04 m)."""
+GRIPPER_CLOSED = -1.0
+"""Normalised gripper action that closes the fingers."""
+REPO_ID = "local/rtv3_grasp_clutter"
+"""Repository id of the LeRobot datasets this project writes (``--push-to-hub`` gives a real one)."""
 ENV_STATE = "observation.environment_state"
 """LeRobot's packed environment-state key: the point cloud and grasps in one vector (:func:`pack_context`)."""
 TARGET_GRASP = "target_grasp_index"

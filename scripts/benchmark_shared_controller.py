@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     from tqdm import tqdm
 
-    from rtv3_maniskill.experiments.episodes import SharedControlEnv
+    from rtv3_maniskill.benchmarks.episodes import SharedControlEnv
     from rtv3_maniskill.features import observation_from_env
     from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT, load_policy
     from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config

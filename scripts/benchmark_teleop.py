@@ -14,8 +14,8 @@ import os
 import statistics
 import subprocess
 
-from rtv3_maniskill.experiments.grasp_trial import TrialConfig
-from rtv3_maniskill.experiments.teleop_session import SessionConfig, TeleopSession
+from rtv3_maniskill.teleop.grasp_trial import TrialConfig
+from rtv3_maniskill.teleop.session import SessionConfig, TeleopSession
 
 
 def _xvfb() -> subprocess.Popen | None:

@@ -2,7 +2,7 @@
 
     python scripts/merge_datasets.py data/train_v2 data/dagger_r1 --output data/train_r1
 
-Uses LeRobot's own ``merge_datasets`` through ``rtv3_maniskill.datasets.merge`` (which mends its
+Uses LeRobot's own ``merge_datasets`` through ``rtv3_maniskill.datagen.merge`` (which mends its
 episode-file labels, so a merged dataset can be merged again); episodes keep their order, source by
 source. The output folder must not exist (a half-written merge is removed).
 """
@@ -19,7 +19,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("sources", nargs="+", type=Path, help="dataset folders (LeRobot roots)")
     parser.add_argument("--output", type=Path, required=True, help="new dataset folder")
     args = parser.parse_args(argv)
-    from rtv3_maniskill.datasets.merge import merge
+    from rtv3_maniskill.datagen.merge import merge
 
     try:
         merged, datasets = merge(args.sources, args.output)

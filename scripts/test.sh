@@ -4,6 +4,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh --dev
 .venv/bin/ruff check .
+.venv/bin/lint-imports --no-cache >/dev/null || .venv/bin/lint-imports --no-cache  # the layers of docs/ARCHITECTURE.md, no import cycles
 export PYTHONWARNINGS="${PYTHONWARNINGS:-ignore::DeprecationWarning}"
 # LeRobot reads datasets through Hugging Face `datasets`, which keeps a converted copy of each one
 # it loads; the tests' throw-away datasets get a throw-away cache instead of the user's.

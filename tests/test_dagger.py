@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from rtv3_maniskill import features
-from rtv3_maniskill.datasets.lerobot_export import state_histories
-from rtv3_maniskill.experiments.dagger import (
+from rtv3_maniskill.datagen.dagger import (
     FAILURE_WINDOW_STEPS,
     DaggerConfig,
     Rollout,
     parse_driver,
     relabel_steps,
 )
+from rtv3_maniskill.datagen.lerobot_export import state_histories
 
 
 def test_state_histories_hold_the_prefix_before_the_first_frame():
@@ -69,8 +69,9 @@ def test_relabelled_episode_keeps_the_rollout_history_and_the_experts_actions(tm
     and the rollout's own frames never become dataset frames."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from rtv3_maniskill.datasets.lerobot_export import REPO_ID, StagingArea, export_lerobot_dataset
-    from rtv3_maniskill.experiments.dagger import DaggerCollector, rollout_variant
+    from rtv3_maniskill.datagen.dagger import DaggerCollector, rollout_variant
+    from rtv3_maniskill.datagen.lerobot_export import StagingArea, export_lerobot_dataset
+    from rtv3_maniskill.features import REPO_ID
     from rtv3_maniskill.policies.rtv3 import load_policy
 
     policy = load_policy()

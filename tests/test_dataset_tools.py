@@ -18,7 +18,7 @@ import torch
 
 from rtv3_maniskill import features
 from rtv3_maniskill.cli import main
-from rtv3_maniskill.datasets.lerobot_export import REPO_ID
+from rtv3_maniskill.features import REPO_ID
 
 ARGS = ["--num-points", "64", "--max-grasps", "16", "--context", "mesh", "--scene-type", "packed"]
 
@@ -114,11 +114,11 @@ def test_lerobot_edit_dataset_cli_delete_episodes(generated, tmp_path):
 
 def test_merging_a_merged_dataset_keeps_every_episode(generated, tmp_path):
     """A merge whose episode metadata spilled into a second file (LeRobot 0.4.4 labels both files 0)
-    merges again with every episode, in order, through ``rtv3_maniskill.datasets.merge``."""
+    merges again with every episode, in order, through ``rtv3_maniskill.datagen.merge``."""
     import pyarrow.parquet as pq
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from rtv3_maniskill.datasets.merge import merge, repair_episode_file_labels
+    from rtv3_maniskill.datagen.merge import merge, repair_episode_file_labels
 
     spilled = tmp_path / "spilled"
     shutil.copytree(generated, spilled, ignore=shutil.ignore_patterns("rtv3_staging"))

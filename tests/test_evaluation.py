@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from rtv3_maniskill import features, se3
+from rtv3_maniskill.benchmarks import outcomes, planning, prediction
 from rtv3_maniskill.cli import main
-from rtv3_maniskill.experiments import planning, prediction
 
 NUM_POINTS, MAX_GRASPS = 256, 16
 GEN_ARGS = ["--num-points", str(NUM_POINTS), "--max-grasps", str(MAX_GRASPS), "--context", "mesh",
@@ -203,9 +203,9 @@ def test_planning_success_rule_uses_the_pregrasp_its_twin_and_threshold():
     assert se3.pose_distance(pre[0], pre[0] @ _offset(rz=math.pi / 2),
                              se3.SHARED_CONTROL_ROT_WEIGHT) == pytest.approx(0.3)
     # Collision wins over success at the same step.
-    assert planning.trial_outcome(collision=True, success=True) == "collision"
-    assert planning.trial_outcome(collision=False, success=True) == "success"
-    assert planning.trial_outcome(collision=False, success=False) is None
+    assert outcomes.trial_outcome(collision=True, success=True) == "collision"
+    assert outcomes.trial_outcome(collision=False, success=True) == "success"
+    assert outcomes.trial_outcome(collision=False, success=False) is None
 
 
 def test_trial_trace_splits_the_error_into_translation_and_rotation():
@@ -248,7 +248,7 @@ def test_planning_benchmark_runs_writes_and_resumes(untrained_policy, tmp_path, 
     assert main(args) == 0
     assert "SR" in capsys.readouterr().out
     rows = _trial_rows(out)
-    assert len(rows) == 1 and rows[0]["outcome"] in planning.OUTCOMES
+    assert len(rows) == 1 and rows[0]["outcome"] in outcomes.OUTCOMES
     assert int(rows[0]["context_grasps"]) == 1 and 1 <= int(rows[0]["steps"]) <= 150
     summary = json.loads((out / "planning_summary.json").read_text())
     assert summary["trials"] == 1
@@ -326,7 +326,7 @@ def test_planning_trials_resume_after_a_torn_row_and_summary_leaves_out_missing_
 
 def test_step0_calibration_of_a_known_gaussian():
     """Samples of the ML class's own Gaussian are covered at the chi2 rate; far points are not."""
-    from rtv3_maniskill.experiments.prediction import step0_calibration
+    from rtv3_maniskill.benchmarks.prediction import step0_calibration
     from rtv3_maniskill.twist_mixture import TwistMixture
 
     b, k = 4000, 2

@@ -17,15 +17,15 @@ import torch
 
 from rtv3_maniskill import features, se3
 from rtv3_maniskill.cli import main
-from rtv3_maniskill.datasets.demonstrations import HOLD_STEPS
-from rtv3_maniskill.datasets.lerobot_export import (
+from rtv3_maniskill.datagen.demonstrations import HOLD_STEPS
+from rtv3_maniskill.datagen.lerobot_export import (
     ATTEMPT_FIELDS,
     ATTEMPTS,
-    REPO_ID,
     SETTINGS,
     StagingArea,
     end_at_pregrasp,
 )
+from rtv3_maniskill.features import REPO_ID
 from rtv3_maniskill.records import RecordStore
 from rtv3_maniskill.tasks.grasp_sampler import PREGRASP_DISTANCE
 
@@ -197,7 +197,7 @@ def test_truncated_staged_episode_names_the_file(tiny_dataset, tmp_path):
 
 
 def test_staged_episode_loads_as_an_episode(tiny_dataset):
-    from rtv3_maniskill.datasets.demonstrations import Episode
+    from rtv3_maniskill.datagen.demonstrations import Episode
 
     episode = StagingArea.load(StagingArea(tiny_dataset).episode_files()[0])
     assert isinstance(episode, Episode)
@@ -257,8 +257,8 @@ def test_lerobot_train_on_generated_dataset(tiny_dataset, tmp_path):
 def test_exact_episode_stats_match_lerobots_own():
     from lerobot.datasets.compute_stats import compute_episode_stats
 
-    from rtv3_maniskill.datasets.episode_stats import exact_episode_stats
-    from rtv3_maniskill.datasets.lerobot_export import dataset_features
+    from rtv3_maniskill.datagen.episode_stats import exact_episode_stats
+    from rtv3_maniskill.datagen.lerobot_export import dataset_features
 
     rng = np.random.default_rng(0)
     spec = dataset_features(num_points=32, max_grasps=4)
@@ -321,7 +321,7 @@ def test_push_to_hub_uploads_the_dataset_with_a_card_and_fails_clearly_offline(t
     import huggingface_hub
     from huggingface_hub import constants
 
-    from rtv3_maniskill.datasets.hub import HubPushError, push_dataset
+    from rtv3_maniskill.datagen.hub import HubPushError, push_dataset
 
     calls: dict[str, object] = {}
     monkeypatch.setattr(huggingface_hub.HfApi, "create_repo", lambda self, **kw: calls.setdefault("repo", kw))

@@ -12,26 +12,26 @@ import torch
 import trimesh
 from scipy.spatial import ConvexHull
 
-from rtv3_maniskill.se3 import quat_to_matrix
-from rtv3_maniskill.tasks.grasp_sampler import (
-    FRICTION_COEFFICIENT,
-    GraspSet,
-    canonicalize_symmetric,
-    sample_grasps,
-)
-from rtv3_maniskill.tasks.panda_hand import (
+from rtv3_maniskill.robot.panda_hand import (
     FINGER_Z_IN_TCP,
     MAX_OPENING,
     TCP_OFFSET,
     hand_parts,
     panda_asset_dir,
 )
-from rtv3_maniskill.tasks.scene_geometry import (
+from rtv3_maniskill.robot.scene_geometry import (
     WORKSPACE_CENTER,
     WORKSPACE_HALF_SIZE,
     CollisionShape,
     ObjectGeometry,
     SceneGeometry,
+)
+from rtv3_maniskill.se3 import quat_to_matrix
+from rtv3_maniskill.tasks.grasp_sampler import (
+    FRICTION_COEFFICIENT,
+    GraspSet,
+    canonicalize_symmetric,
+    sample_grasps,
 )
 
 CONE = math.atan(FRICTION_COEFFICIENT)

@@ -171,8 +171,8 @@ def test_grasp_clutter_with_random_urdfs_is_seeded_and_has_grasps():
 def test_benchmark_shared_takes_the_object_source(tmp_path):
     import argparse
 
+    from rtv3_maniskill.benchmarks.shared_benchmark import BenchmarkConfig
     from rtv3_maniskill.cli.benchmark_shared import add_arguments
-    from rtv3_maniskill.experiments.shared_benchmark import BenchmarkConfig
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
-from rtv3_maniskill.presets import EXECUTIONS, PRESETS, get_preset
+from rtv3_maniskill.presets import PRESETS, get_preset
+from rtv3_maniskill.robot.execution import EXECUTIONS
+from rtv3_maniskill.robot.scene_geometry import WORKSPACE_CENTER
 from rtv3_maniskill.tasks.object_library import make_object_set
 from rtv3_maniskill.tasks.scene_generation import (
     PACKED_YCB_HALF_RANGE,
@@ -18,7 +20,6 @@ from rtv3_maniskill.tasks.scene_generation import (
     _SettleScene,
     generate_layout,
 )
-from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER
 from rtv3_maniskill.tasks.ycb_objects import YCB_BOXES, YCB_CYLINDERS, YCB_NAMES, YcbObjectSet, make_ycb_object
 
 

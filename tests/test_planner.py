@@ -8,15 +8,15 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from rtv3_maniskill.datasets.panda_model import (
+from rtv3_maniskill.robot.panda_model import (
     REST_QPOS,
     CollisionMargins,
     PandaCollisionWorld,
     PandaKinematics,
     panda_asset_dir,
 )
-from rtv3_maniskill.datasets.planner import FAILURE_REASONS, PandaPlanner
-from rtv3_maniskill.tasks.scene_geometry import (
+from rtv3_maniskill.robot.planner import FAILURE_REASONS, PandaPlanner
+from rtv3_maniskill.robot.scene_geometry import (
     READY_QPOS,
     ROBOT_BASE_POSITION,
     CollisionShape,

@@ -1,4 +1,4 @@
-"""NEO QP twist controller and NeoSS safety filter (control/neo_qp.py, mode pd_ee_twist_qp)."""
+"""NEO QP twist controller and NeoSS safety filter (robot/neo_qp.py, mode pd_ee_twist_qp)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 
 import rtv3_maniskill  # noqa: F401  (registers the task)
 from rtv3_maniskill import se3
-from rtv3_maniskill.control.neo_qp import (
+from rtv3_maniskill.robot.neo_qp import (
     NeoConfig,
     NeoController,
     NeoSafetyFilter,
@@ -18,9 +18,9 @@ from rtv3_maniskill.control.neo_qp import (
     pose_target,
     pose_target_twist,
 )
-from rtv3_maniskill.datasets.panda_model import PandaKinematics
-from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
-from rtv3_maniskill.tasks.twist_controller import attach_safety_filters, target_object_index
+from rtv3_maniskill.robot.panda_model import PandaKinematics
+from rtv3_maniskill.robot.scene_geometry import READY_QPOS
+from rtv3_maniskill.robot.twist_controller import attach_safety_filters, target_object_index
 
 DT = 1.0 / 20.0
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from rtv3_maniskill.experiments.episodes import EpisodeResult, SharedControlEnv, make_method, run_episode
-from rtv3_maniskill.experiments.shared_benchmark import (
+from rtv3_maniskill.benchmarks.episodes import EpisodeResult, SharedControlEnv, make_method, run_episode
+from rtv3_maniskill.benchmarks.shared_benchmark import (
     BenchmarkConfig,
     BenchmarkError,
     merge_runs,
@@ -452,7 +452,7 @@ def test_neoss_safety_filter_keeps_a_diving_user_out_of_the_scene():
 
 @pytest.mark.parametrize("columns_added_since", [1, 2])
 def test_results_written_before_the_safety_filter_and_contact_columns_still_read(tmp_path, columns_added_since):
-    from rtv3_maniskill.experiments.shared_benchmark import RESULT_FIELDS, read_results
+    from rtv3_maniskill.benchmarks.shared_benchmark import RESULT_FIELDS, read_results
 
     old = tmp_path / "results.csv"
     row = dict(_row(900000, "direct", "collision", 30), final_distance=0.05, autonomous_steps=0, user_only_steps=30,
@@ -465,10 +465,10 @@ def test_results_written_before_the_safety_filter_and_contact_columns_still_read
 
 
 def test_trials_start_at_the_ready_pose_and_infeasible_goals_are_never_run(tmp_path, env):
-    from rtv3_maniskill.datasets.panda_model import PandaKinematics
-    from rtv3_maniskill.experiments.shared_benchmark import GOAL_FIELDS, trial_options
+    from rtv3_maniskill.benchmarks.shared_benchmark import GOAL_FIELDS, trial_options
     from rtv3_maniskill.records import RecordStore
-    from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
+    from rtv3_maniskill.robot.panda_model import PandaKinematics
+    from rtv3_maniskill.robot.scene_geometry import READY_QPOS
 
     # Scene 800000 has candidates without collision-free IK at the pre-grasp or with a blocked approach.
     config = BenchmarkConfig(output=tmp_path, scenes=1, seed=8, users=["ideal"], methods=["direct"], max_steps=2)

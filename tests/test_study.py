@@ -6,7 +6,7 @@ import numpy as np
 from scipy import stats
 
 from rtv3_maniskill.cli import main
-from rtv3_maniskill.experiments.study import compare_methods, latin_square, plan_study
+from rtv3_maniskill.teleop.study import compare_methods, latin_square, plan_study
 
 
 def test_statistics_match_scipy_on_a_hand_made_example():

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from rtv3_maniskill.se3 import so3_exp
-from rtv3_maniskill.shared_control.teleop import (
+from rtv3_maniskill.teleop.devices import (
     GamepadMapping,
     KeyboardMapping,
     LeRobotKeyboardTwist,

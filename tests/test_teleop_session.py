@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from rtv3_maniskill import features
-from rtv3_maniskill.datasets.session_recorder import ASSIST_MODES, OUTCOMES, USER_TWIST
-from rtv3_maniskill.shared_control.teleop import KeyboardMapping
+from rtv3_maniskill.teleop.devices import KeyboardMapping
+from rtv3_maniskill.teleop.recorder import ASSIST_MODES, OUTCOMES, USER_TWIST
 
 REPO = Path(__file__).resolve().parents[1]
 RTV3 = str(Path(sys.executable).with_name("rtv3"))
@@ -117,7 +117,7 @@ class ButtonScript:
         self.actions, self.todo = actions, ["approach", "grasp", "lift"]
 
     def poll(self, tcp_pose, events):
-        from rtv3_maniskill.experiments.teleop_inputs import UserInput
+        from rtv3_maniskill.teleop.inputs import UserInput
 
         buttons = [self.todo.pop(0)] if self.todo and not self.actions.scripted else []
         return UserInput(torch.zeros(6, dtype=torch.float64), torch.zeros(6, dtype=torch.float64), buttons)
@@ -127,9 +127,9 @@ def test_grasp_buttons_lift_the_target_and_a_miss_fails(tmp_path):
     """From the target's pre-grasp (IK), Y-A-X lift the target: success, recorded; from 6 cm further back
     the gripper closes on air: the trial fails."""
     from rtv3_maniskill import se3
-    from rtv3_maniskill.datasets.planner import PandaPlanner
-    from rtv3_maniskill.experiments.grasp_trial import TrialConfig
-    from rtv3_maniskill.experiments.teleop_session import SessionConfig, TeleopSession
+    from rtv3_maniskill.robot.planner import PandaPlanner
+    from rtv3_maniskill.teleop.grasp_trial import TrialConfig
+    from rtv3_maniskill.teleop.session import SessionConfig, TeleopSession
 
     config = SessionConfig(method="direct", input="simulated:ideal", scene_seed=2, headless=True,
                            record=tmp_path / "session", trial_config=TrialConfig(timeout_s=8.0))
@@ -181,7 +181,7 @@ def test_a_killed_session_keeps_its_finished_trials_and_resumes(tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from rtv3_maniskill.cli import main
-    from rtv3_maniskill.datasets.lerobot_export import REPO_ID
+    from rtv3_maniskill.features import REPO_ID
 
     folder = tmp_path / "P01_direct"
     cmd = ["teleop", "--method", "direct", "--input", "simulated:ideal", "--headless", "--trials", "3",
@@ -208,7 +208,7 @@ def test_ctrl_c_ends_a_session_cleanly_and_keeps_its_trials(tmp_path):
 
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from rtv3_maniskill.datasets.lerobot_export import REPO_ID
+    from rtv3_maniskill.features import REPO_ID
 
     folder = tmp_path / "P02_direct"
     proc, sessions = _session_after_its_first_trial(

@@ -122,7 +122,7 @@ def shared_control_overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rtv3_maniskill.experiments.shared_benchmark import (
+    from rtv3_maniskill.benchmarks.shared_benchmark import (
         BenchmarkConfig,
         BenchmarkError,
         merge_runs,

@@ -20,7 +20,7 @@ from rtv3_maniskill.cli.scene_args import (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from rtv3_maniskill.experiments.dagger import DEFAULT_DRIVERS, FAILURE_WINDOW_STEPS
+    from rtv3_maniskill.datagen.dagger import DEFAULT_DRIVERS, FAILURE_WINDOW_STEPS
 
     parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
                         help="checkpoint whose closed loop is rolled out (default: the shipped one)")
@@ -43,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rtv3_maniskill.experiments.dagger import DaggerConfig, run_dagger
+    from rtv3_maniskill.datagen.dagger import DaggerConfig, run_dagger
     from rtv3_maniskill.scene_pool import SceneWorkerError
 
     resolve_scene_arguments(args)

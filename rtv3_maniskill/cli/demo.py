@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _make_env(want_video: bool, env_kwargs: dict[str, Any]):
     """A SharedControlEnv that renders if it can; returns (env, can_render)."""
-    from rtv3_maniskill.experiments.episodes import SharedControlEnv
+    from rtv3_maniskill.benchmarks.episodes import SharedControlEnv
 
     if want_video:
         env = None
@@ -223,7 +223,7 @@ def _outcome(result) -> str:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from rtv3_maniskill.experiments.episodes import controller_speed_limits, make_method, run_episode
+    from rtv3_maniskill.benchmarks.episodes import controller_speed_limits, make_method, run_episode
     from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
     from rtv3_maniskill.shared_control.simulated_users import make_user
 

@@ -5,7 +5,7 @@
 * ``rtv3 evaluate planning --policy.path P [--scenes 20] [--seed 9] [--max-grasps-per-scene 2] [--output DIR]``:
   closed-loop planning in GraspClutter-v1: SR / CR / TOR (resumable).
 
-See ``rtv3_maniskill/experiments/prediction.py`` and ``planning.py`` for the protocols.
+See ``rtv3_maniskill/benchmarks/prediction.py`` and ``planning.py`` for the protocols.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
 
 
 def _seed_range(text: str) -> tuple[int, int]:
-    from rtv3_maniskill.experiments.prediction import parse_seed_range
+    from rtv3_maniskill.benchmarks.prediction import parse_seed_range
 
     try:
         return parse_seed_range(text)
@@ -79,7 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _run_prediction(args: argparse.Namespace) -> int:
     import torch
 
-    from rtv3_maniskill.experiments.prediction import format_table, run_prediction_evaluation
+    from rtv3_maniskill.benchmarks.prediction import format_table, run_prediction_evaluation
 
     torch.set_num_threads(1)
     try:
@@ -97,7 +97,7 @@ def _run_prediction(args: argparse.Namespace) -> int:
 
 
 def _run_planning(args: argparse.Namespace) -> int:
-    from rtv3_maniskill.experiments.planning import PlanningConfig, run_planning_benchmark
+    from rtv3_maniskill.benchmarks.planning import PlanningConfig, run_planning_benchmark
 
     try:
         config = PlanningConfig(

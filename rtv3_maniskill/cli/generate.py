@@ -97,9 +97,9 @@ def _init_worker(args_dict: dict) -> _Worker:
     import torch
 
     import rtv3_maniskill  # noqa: F401
-    from rtv3_maniskill.datasets.demonstrations import DemonstrationRecorder
-    from rtv3_maniskill.datasets.lerobot_export import StagingArea
-    from rtv3_maniskill.datasets.planner import PandaPlanner
+    from rtv3_maniskill.datagen.demonstrations import DemonstrationRecorder
+    from rtv3_maniskill.datagen.lerobot_export import StagingArea
+    from rtv3_maniskill.robot.planner import PandaPlanner
 
     torch.set_num_threads(1)
     env = gym.make(
@@ -122,7 +122,7 @@ def _init_worker(args_dict: dict) -> _Worker:
 
 def _run_scene(worker: _Worker, job: tuple[int, list[str]]) -> dict:
     """Record every not-yet-attempted grasp of one scene; returns what to stage and counts for the summary."""
-    from rtv3_maniskill.datasets.lerobot_export import StagedScene, StagingArea
+    from rtv3_maniskill.datagen.lerobot_export import StagedScene, StagingArea
 
     scene_seed, done_keys = job
     args = worker.args
@@ -155,7 +155,7 @@ def _run_scene(worker: _Worker, job: tuple[int, list[str]]) -> dict:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from rtv3_maniskill.datasets.lerobot_export import StagedEpisodeError, StagingArea, export_lerobot_dataset
+    from rtv3_maniskill.datagen.lerobot_export import StagedEpisodeError, StagingArea, export_lerobot_dataset
     from rtv3_maniskill.records import scene_seeds
     from rtv3_maniskill.scene_pool import SceneWorkerError, run_scenes
 

@@ -11,8 +11,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from rtv3_maniskill.datasets.hub import HubPushError, check_repo_id, push_dataset
-from rtv3_maniskill.presets import EXECUTIONS, PRESETS, get_preset
+from rtv3_maniskill.datagen.hub import HubPushError, check_repo_id, push_dataset
+from rtv3_maniskill.presets import PRESETS, get_preset
+from rtv3_maniskill.robot.execution import EXECUTIONS
 
 SCENE_TYPE_CHOICES = ("pile", "packed", "packed_ycb", "mixed")
 

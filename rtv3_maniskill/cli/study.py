@@ -46,7 +46,7 @@ def _table(rows: list[dict], columns: list[str]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rtv3_maniskill.experiments import study
+    from rtv3_maniskill.teleop import study
 
     if args.study_command == "plan":
         methods = [m.strip() for m in args.methods.split(",") if m.strip()]

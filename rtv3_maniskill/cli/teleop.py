@@ -2,7 +2,7 @@
 
 Keyboard (the pygame window must have the focus): ``w/s a/d q/e`` move the hand along world x, y, z;
 ``i/k j/l u/o`` rotate it; ``f`` approach (the paper's Y), ``g`` grasp (A), ``t`` lift (X),
-``r`` release (B); F12 saves a screenshot; Esc quits. Gamepad: see ``shared_control/teleop.py``.
+``r`` release (B); F12 saves a screenshot; Esc quits. Gamepad: see ``teleop/devices.py``.
 """
 
 from __future__ import annotations
@@ -47,9 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rtv3_maniskill.experiments.grasp_trial import TrialConfig
-    from rtv3_maniskill.experiments.teleop_session import SessionConfig, TeleopSession
     from rtv3_maniskill.shared_control.simulated_users import USERS
+    from rtv3_maniskill.teleop.grasp_trial import TrialConfig
+    from rtv3_maniskill.teleop.session import SessionConfig, TeleopSession
 
     if args.trials < 1:
         raise UsageError(f"--trials must be >= 1, got {args.trials}")
@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     if kind == "simulated" and user not in USERS:
         raise UsageError(f"--input {args.input!r}: unknown simulated user {user!r}; known: {', '.join(sorted(USERS))}")
     if kind == "gamepad":  # before the scene is built: a missing pad is found in a second
-        from rtv3_maniskill.experiments.teleop_inputs import GamepadInput
+        from rtv3_maniskill.teleop.inputs import GamepadInput
 
         try:
             GamepadInput()

@@ -21,7 +21,7 @@ def run(args: argparse.Namespace) -> int:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from rtv3_maniskill import features as F
-    from rtv3_maniskill.datasets.lerobot_export import REPO_ID
+    from rtv3_maniskill.features import REPO_ID
     from rtv3_maniskill.visualization import grasp_array_to_poses, plot_point_cloud_and_grasps
 
     if not (args.dataset / "meta" / "info.json").exists():

@@ -1,4 +1,4 @@
-"""Shared control: RT-V3 posterior decision making, baselines, simulated users and input devices."""
+"""Shared control: RT-V3 posterior decision making, baselines and simulated users."""
 
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
 from rtv3_maniskill.shared_control.hindsight_optimization import HindsightOptimization
@@ -15,14 +15,11 @@ from rtv3_maniskill.shared_control.shared_controller import (
     SharedController,
 )
 from rtv3_maniskill.shared_control.simulated_users import SimulatedUser, make_user
-from rtv3_maniskill.shared_control.teleop import GamepadMapping, KeyboardMapping
 
 __all__ = [
     "DirectTeleoperation",
     "FactorizedTwistMixture",
-    "GamepadMapping",
     "HindsightOptimization",
-    "KeyboardMapping",
     "SharedControlConfig",
     "SharedControlDiagnostics",
     "SharedController",

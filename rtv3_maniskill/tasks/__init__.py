@@ -3,6 +3,7 @@ own registration, in place of the lazy one made by ``import rtv3_maniskill``) an
 ``panda_twist`` agent."""
 
 import gymnasium as gym
+from mani_skill.utils.registration import make
 
 from rtv3_maniskill import ENV_ID
 
@@ -10,4 +11,11 @@ gym.registry.pop(ENV_ID, None)  # the lazy spec: ManiSkill's register_env adds t
 
 from rtv3_maniskill.tasks.grasp_clutter import GraspClutterEnv  # noqa: E402
 
-__all__ = ["GraspClutterEnv"]
+
+def make_grasp_clutter(**kwargs):
+    """gymnasium entry point of the lazy ``GraspClutter-v1`` (``import rtv3_maniskill``): importing this
+    package replaced that registration by ManiSkill's, which builds the env."""
+    return make(ENV_ID, **kwargs)
+
+
+__all__ = ["GraspClutterEnv", "make_grasp_clutter"]

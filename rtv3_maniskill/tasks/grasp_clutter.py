@@ -38,6 +38,15 @@ from mani_skill.utils.structs.types import SimConfig
 
 from rtv3_maniskill import se3
 from rtv3_maniskill.features import DEFAULT_MAX_GRASPS, DEFAULT_NUM_POINTS, FPS, GRASP_DIM, pregrasp_poses
+from rtv3_maniskill.robot.execution import EXECUTIONS
+from rtv3_maniskill.robot.scene_geometry import (
+    READY_QPOS,
+    ROBOT_BASE_POSITION,
+    TABLE_TOP_CENTER,
+    WORKSPACE_CENTER,
+    SceneGeometry,
+)
+from rtv3_maniskill.robot.twist_controller import PandaTwist, set_execution  # noqa: F401  (registers)
 from rtv3_maniskill.tasks.grasp_sampler import GraspSet, sample_grasps
 from rtv3_maniskill.tasks.object_library import convex_part_file, make_object_set
 from rtv3_maniskill.tasks.point_cloud import DEFAULT_VOXEL_SIZE, process_point_cloud, sample_scene_surface
@@ -47,14 +56,6 @@ from rtv3_maniskill.tasks.scene_generation import (
     generate_layout,
     matrix_to_sapien_pose,
 )
-from rtv3_maniskill.tasks.scene_geometry import (
-    READY_QPOS,
-    ROBOT_BASE_POSITION,
-    TABLE_TOP_CENTER,
-    WORKSPACE_CENTER,
-    SceneGeometry,
-)
-from rtv3_maniskill.tasks.twist_controller import EXECUTIONS, PandaTwist, set_execution  # noqa: F401  (registers)
 
 START_QPOS = np.concatenate([READY_QPOS, [0.04, 0.04]])
 """Default start (arm + open fingers): the ready pose, plus N(0, 0.02) per joint at reset."""

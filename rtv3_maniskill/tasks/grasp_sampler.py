@@ -26,7 +26,7 @@ test instead of a simulated lift):
    lazily, only for grasps about to be picked.
 
 Frames: world (z up, table top z = 0); grasp poses are world-from-TCP ``(4, 4)`` in the
-``panda_hand_tcp`` convention (see :mod:`rtv3_maniskill.tasks.panda_hand`).
+``panda_hand_tcp`` convention (see :mod:`rtv3_maniskill.robot.panda_hand`).
 """
 
 from __future__ import annotations
@@ -40,8 +40,7 @@ import torch
 import trimesh
 
 from rtv3_maniskill.features import PREGRASP_DISTANCE
-from rtv3_maniskill.se3 import matrix_to_quat, rotate_about_z, translate_along_z
-from rtv3_maniskill.tasks.panda_hand import (
+from rtv3_maniskill.robot.panda_hand import (
     CLOSING_REGION_CENTER,
     FINGER_DEPTH,
     FINGERTIP_Z,
@@ -50,7 +49,8 @@ from rtv3_maniskill.tasks.panda_hand import (
     closing_region_size,
     coal_convex,
 )
-from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF_SIZE, SceneGeometry
+from rtv3_maniskill.robot.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF_SIZE, SceneGeometry
+from rtv3_maniskill.se3 import matrix_to_quat, rotate_about_z, translate_along_z
 
 MIN_WIDTH = 0.005
 MIN_SCORE = 0.4

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from rtv3_maniskill.tasks.scene_geometry import CollisionShape, ObjectGeometry, translation, upright_cylinder
+from rtv3_maniskill.robot.scene_geometry import CollisionShape, ObjectGeometry, translation, upright_cylinder
 from rtv3_maniskill.tasks.ycb_objects import YcbObjectSet
 
 PROCEDURAL_KINDS = ("box", "cylinder", "sphere", "capsule", "convex", "bottle", "mug", "lshape")

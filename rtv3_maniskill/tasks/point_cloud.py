@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from rtv3_maniskill.tasks.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF_SIZE, SceneGeometry
+from rtv3_maniskill.robot.scene_geometry import WORKSPACE_CENTER, WORKSPACE_HALF_SIZE, SceneGeometry
 
 DEFAULT_VOXEL_SIZE = 0.3 / 40  # 7.5 mm (docs/PAPER_DETAILS.md)
 TABLE_CROP_Z = 0.004

@@ -16,14 +16,14 @@ from typing import Literal
 import numpy as np
 import sapien
 
-from rtv3_maniskill.tasks.object_library import ObjectSet, convex_part_file
-from rtv3_maniskill.tasks.scene_geometry import (
+from rtv3_maniskill.robot.scene_geometry import (
     WORKSPACE_CENTER,
     WORKSPACE_HALF_SIZE,
     CollisionShape,
     ObjectGeometry,
     SceneGeometry,
 )
+from rtv3_maniskill.tasks.object_library import ObjectSet, convex_part_file
 
 SceneType = Literal["pile", "packed", "packed_ycb"]
 SCENE_TYPES = ("pile", "packed", "packed_ycb")

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from rtv3_maniskill.tasks.scene_geometry import CollisionShape, ObjectGeometry, translation, upright_cylinder
+from rtv3_maniskill.robot.scene_geometry import CollisionShape, ObjectGeometry, translation, upright_cylinder
 
 YCB_BOXES: dict[str, tuple[float, float, float]] = {
     "cracker_box": (0.060, 0.158, 0.210),

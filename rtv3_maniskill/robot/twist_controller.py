@@ -16,7 +16,6 @@ from contextlib import redirect_stderr, redirect_stdout
 from copy import deepcopy
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pytorch_kinematics as pk
@@ -26,10 +25,8 @@ from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController, PDJ
 from mani_skill.agents.registration import register_agent
 from mani_skill.agents.robots.panda.panda import Panda
 
-from rtv3_maniskill.presets import EXECUTIONS
-
-if TYPE_CHECKING:  # control.neo_qp imports tasks.scene_geometry, whose package imports this module
-    from rtv3_maniskill.control.neo_qp import NeoController, NeoSafetyFilter
+from rtv3_maniskill.robot.execution import EXECUTIONS
+from rtv3_maniskill.robot.neo_qp import NeoConfig, NeoController, NeoSafetyFilter
 
 
 @lru_cache(maxsize=4)
@@ -115,7 +112,7 @@ class PDEETwistControllerConfig(PDJointPosControllerConfig):
 
 
 class PDEETwistQPController(PDEETwistController):
-    """``pd_ee_twist_qp``: the TCP body twist ``(B, 6)`` tracked by the NEO QP (``control/neo_qp.py``).
+    """``pd_ee_twist_qp``: the TCP body twist ``(B, 6)`` tracked by the NEO QP (``robot/neo_qp.py``).
 
     Joint position and velocity limits hold (velocity dampers near the limits); obstacles are not
     avoided unless a ``NeoSafetyFilter`` is attached per sub-scene (``attach_safety_filters``), whose
@@ -127,8 +124,6 @@ class PDEETwistQPController(PDEETwistController):
 
     def _initialize_joints(self):
         super()._initialize_joints()
-        from rtv3_maniskill.control.neo_qp import NeoConfig, NeoController
-
         neo = NeoConfig(dt=1.0 / self._control_freq, collision_damper=False)
         controller = NeoController(None, neo)
         self.qp_controllers: list[NeoController] = [controller] + [
@@ -218,7 +213,6 @@ __all__ = [
     "PDEETwistControllerConfig",
     "PDEETwistQPController",
     "PDEETwistQPControllerConfig",
-    "EXECUTIONS",
     "PandaTwist",
     "attach_safety_filters",
     "clamp_twist_norms",

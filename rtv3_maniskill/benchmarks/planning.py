@@ -44,7 +44,8 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import features, se3
-from rtv3_maniskill.features import CONTEXT_MODES, context_mask, pregrasp_poses
+from rtv3_maniskill.benchmarks.outcomes import CONTACT_KINDS, OUTCOMES, describe_contact, trial_outcome
+from rtv3_maniskill.features import CONTEXT_MODES, GRIPPER_OPEN, context_mask, pregrasp_poses
 from rtv3_maniskill.records import SCENE_SEED_STRIDE, RecordStore, scene_seeds, select_targets
 
 PLANNING_SUCCESS_THRESHOLD = 0.2
@@ -55,27 +56,13 @@ TARGET_SALT = 29
 """Salt of the seeded target choice (:func:`rtv3_maniskill.records.select_targets`) of planning runs."""
 MAX_GRASPS_GUESS = 16
 """Progress-bar estimate of the targets per scene when every grasp is a target."""
-OUTCOMES = ("success", "collision", "timeout")
 NO_START_POSE = "no_start_pose"
 PLANNERS = ("policy", "neoss")
 POINT_CLOUD_SOURCES = ("rendered", "mesh")
-GRIPPER_OPEN = 1.0
-"""Normalised gripper command of ``pd_ee_twist`` (the Panda's ``pd_joint_pos`` gripper): open."""
 TRIAL_FIELDS = (
     "scene_seed", "grasp_index", "outcome", "steps", "start_distance", "final_distance", "min_distance",
     "reached_grasp", "context_grasps", "start_attempts", "wall_time_s", "contact",
 )
-CONTACT_KINDS = ("table", "object", "self")
-"""What a ``collision`` trial's robot touched (``contact`` column, "+"-joined when several)."""
-
-
-def describe_contact(base: Any) -> str:
-    """What the robot of sub-scene 0 of ``base`` (a ``GraspClutterEnv``) touches now, "+"-joined in
-    ``CONTACT_KINDS`` order (``""``: nothing)."""
-    kinds = base.robot_contact_kinds()[0]
-    return "+".join(kind for kind in CONTACT_KINDS if kind in kinds)
-
-
 PAPER_TABLE1_FULL = {"SR": 0.904, "CR": 0.079, "TOR": 0.017}
 
 
@@ -132,15 +119,6 @@ def trace_step(step: int, tcp_pose: torch.Tensor, grasp_pose: torch.Tensor, twis
 def is_planning_success(distance: torch.Tensor | float, threshold: float = PLANNING_SUCCESS_THRESHOLD) -> torch.Tensor:
     """``distance < threshold`` (strict), elementwise."""
     return torch.as_tensor(distance) < threshold
-
-
-def trial_outcome(collision: bool, success: bool) -> str | None:
-    """Outcome decided at one step: a contact fails the trial even if the pose was reached; None = go on."""
-    if collision:
-        return "collision"
-    if success:
-        return "success"
-    return None
 
 
 # ----------------------------------------------------------------------------- trials
@@ -303,7 +281,7 @@ class PlanningBenchmark:
         self._cloud: tuple[torch.Tensor, torch.Tensor] | None = None
         self.safety_filter = None
         if config.planner == "neoss":
-            from rtv3_maniskill.control.neo_qp import NeoSafetyFilter
+            from rtv3_maniskill.robot.neo_qp import NeoSafetyFilter
 
             self.safety_filter = NeoSafetyFilter()
 
@@ -340,7 +318,7 @@ class PlanningBenchmark:
 
     def load_scene(self, scene_seed: int) -> list[int]:
         """Build the scene of ``scene_seed`` (reconfigure); returns its valid grasp indices."""
-        from rtv3_maniskill.datasets.planner import PandaPlanner
+        from rtv3_maniskill.robot.planner import PandaPlanner
 
         self.env.reset(seed=scene_seed, options=dict(reconfigure=True))
         self.scene_seed = scene_seed
@@ -370,7 +348,7 @@ class PlanningBenchmark:
 
         Start poses already within the success threshold of a context grasp are redrawn.
         """
-        from rtv3_maniskill.datasets.demonstrations import random_start_configuration
+        from rtv3_maniskill.robot.starts import random_start_configuration
 
         rng = np.random.default_rng([self.config.seed, int(self.scene_seed), grasp])
         kin = self.planner.kin
@@ -409,7 +387,7 @@ class PlanningBenchmark:
             return row
         obs, _ = self.env.reset(options=dict(reconfigure=False, init_qpos=q_start, target_grasp_index=grasp))
         if self.config.planner == "neoss":  # a reset rebuilds the controllers: attach the damper again
-            from rtv3_maniskill.tasks.twist_controller import attach_safety_filters, target_object_index
+            from rtv3_maniskill.robot.twist_controller import attach_safety_filters, target_object_index
 
             self.safety_filter.reset(self.base.layouts[0], target_object=target_object_index(self.env))
             attach_safety_filters(self.env, [self.safety_filter])

@@ -21,12 +21,12 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import features, se3
-from rtv3_maniskill.datasets.demonstrations import describe_grasp, state_vector
-from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_speed_limits, make_method, render_frame
-from rtv3_maniskill.experiments.grasp_actions import EVENTS, GRIPPER_CLOSED, GraspActionConfig, GraspActions
-from rtv3_maniskill.experiments.grasp_trial import GraspTrialMonitor, TrialConfig
-from rtv3_maniskill.experiments.teleop_inputs import SimulatedOperator
-from rtv3_maniskill.experiments.teleop_render import scene_state
+from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_speed_limits, make_method, render_frame
+from rtv3_maniskill.datagen.demonstrations import describe_grasp, state_vector
+from rtv3_maniskill.teleop.grasp_actions import EVENTS, GRIPPER_CLOSED, GraspActionConfig, GraspActions
+from rtv3_maniskill.teleop.grasp_trial import GraspTrialMonitor, TrialConfig
+from rtv3_maniskill.teleop.inputs import SimulatedOperator
+from rtv3_maniskill.teleop.render import scene_state
 
 
 @dataclass
@@ -122,7 +122,7 @@ class TeleopSession:
     """Builds the env, method, input, window and recorder of a :class:`SessionConfig`; :meth:`run` plays it."""
 
     def __init__(self, config: SessionConfig) -> None:
-        from rtv3_maniskill.experiments.teleop_inputs import make_input
+        from rtv3_maniskill.teleop.inputs import make_input
 
         self.config = config
         policy = None
@@ -140,7 +140,7 @@ class TeleopSession:
         # Paced for a person, the window's frames are rendered in a process of their own (teleop_render).
         self.renderer = None
         if not config.headless and self._realtime:
-            from rtv3_maniskill.experiments.teleop_render import RenderProcess
+            from rtv3_maniskill.teleop.render import RenderProcess
 
             camera = render["human_render_camera_configs"]
             self.renderer = RenderProcess({**scene, "human_render_camera_configs": camera})
@@ -149,7 +149,7 @@ class TeleopSession:
         self.speed_limits = controller_speed_limits(self.env.base)
         self.display = None
         if not config.headless:  # the window opens once the scene can be shown
-            from rtv3_maniskill.experiments.teleop_display import TeleopDisplay
+            from rtv3_maniskill.teleop.display import TeleopDisplay
 
             self.display = TeleopDisplay()
         self.input = make_input(config.input, config.user_seed)
@@ -158,7 +158,7 @@ class TeleopSession:
         self.monitor = GraspTrialMonitor(self.env.base, config.trial_config)
         self.recorder = None
         if config.record is not None:
-            from rtv3_maniskill.datasets.session_recorder import SessionRecorder
+            from rtv3_maniskill.teleop.recorder import SessionRecorder
 
             self.recorder = SessionRecorder(config.record, num_points, max_grasps, resume=config.resume, settings=dict(
                 method=config.method, input=config.input, participant=config.participant, scene_seed=config.scene_seed,

@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from rtv3_maniskill import features
-from rtv3_maniskill.datasets.demonstrations import END_AT, HOLD_STEPS, Episode
-from rtv3_maniskill.datasets.episode_stats import fast_episode_writes
+from rtv3_maniskill.datagen.demonstrations import END_AT, HOLD_STEPS, Episode
+from rtv3_maniskill.datagen.episode_stats import fast_episode_writes
 
 STAGING = "rtv3_staging"
 SETTINGS = "rtv3_generation.json"
@@ -44,7 +44,6 @@ ATTEMPT_FIELDS = ("key", "scene", "grasp", "outcome", "frames")
 _EPISODE_ARRAYS = ("state", "action", "point_cloud", "point_cloud_mask", "grasps", "grasps_mask")
 _OPTIONAL_ARRAYS = ("history_prefix",)
 _EPISODE_META = ("target_grasp_index", "scene_seed", "object_names", "target_object", "task", "pregrasp_step", "info")
-REPO_ID = "local/rtv3_grasp_clutter"
 
 
 def dataset_features(num_points: int, max_grasps: int) -> dict:
@@ -301,7 +300,8 @@ def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progres
     if tmp_root.exists():
         shutil.rmtree(tmp_root)
     dataset = LeRobotDataset.create(
-        REPO_ID, fps=features.FPS, features=dataset_features(num_points, max_grasps), root=tmp_root, robot_type="panda",
+        features.REPO_ID, fps=features.FPS, features=dataset_features(num_points, max_grasps), root=tmp_root,
+        robot_type="panda",
         use_videos=False,
     )
     with fast_episode_writes(dataset):

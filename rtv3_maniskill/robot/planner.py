@@ -40,7 +40,7 @@ import toppra.constraint
 import torch
 
 from rtv3_maniskill import se3
-from rtv3_maniskill.datasets.panda_model import (
+from rtv3_maniskill.robot.panda_model import (
     DOF,
     PANDA_ACCELERATION_LIMITS,
     PANDA_VELOCITY_LIMITS,
@@ -51,7 +51,7 @@ from rtv3_maniskill.datasets.panda_model import (
     as_joint_vector,
     as_pose_matrix,
 )
-from rtv3_maniskill.tasks.scene_geometry import SceneGeometry
+from rtv3_maniskill.robot.scene_geometry import SceneGeometry
 
 FailureReason = Literal["ik_failed", "start_in_collision", "goal_in_collision", "planning_failed", "timeout"]
 FAILURE_REASONS: tuple[str, ...] = ("ik_failed", "start_in_collision", "goal_in_collision", "planning_failed",

@@ -19,11 +19,9 @@ from dataclasses import dataclass
 
 import torch
 
-from rtv3_maniskill.datasets.session_recorder import BUTTON_EVENTS
-from rtv3_maniskill.features import DT, PREGRASP_DISTANCE
+from rtv3_maniskill.features import DT, GRIPPER_CLOSED, GRIPPER_OPEN, PREGRASP_DISTANCE
+from rtv3_maniskill.teleop.recorder import BUTTON_EVENTS
 
-GRIPPER_OPEN = 1.0
-GRIPPER_CLOSED = -1.0
 EVENTS = BUTTON_EVENTS
 """Button events in the order they are recorded (``button_events (4,)``): A, B, Y, X."""
 PHASES = ("free", "approach", "closing", "lifting", "opening")
@@ -119,4 +117,4 @@ class GraspActions:
         return twist
 
 
-__all__ = ["EVENTS", "GRIPPER_CLOSED", "GRIPPER_OPEN", "PHASES", "GraspActionConfig", "GraspActions"]
+__all__ = ["EVENTS", "PHASES", "GraspActionConfig", "GraspActions"]

@@ -26,8 +26,8 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import ENV_ID, features
-from rtv3_maniskill.experiments.plan_oracle import PlanOraclePrior
-from rtv3_maniskill.experiments.planning import describe_contact, trial_outcome
+from rtv3_maniskill.benchmarks.outcomes import describe_contact, trial_outcome
+from rtv3_maniskill.benchmarks.plan_oracle import PlanOraclePrior
 from rtv3_maniskill.shared_control.assistance import METHOD_NAMES, AssistanceMethod
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
 from rtv3_maniskill.shared_control.hindsight_optimization import HindsightOptimization
@@ -39,8 +39,6 @@ from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 CONTROL_MODE = "pd_ee_twist"
 QP_CONTROL_MODE = "pd_ee_twist_qp"
 SAFETY_FILTERS = (None, "neoss")
-GRIPPER_OPEN = 1.0
-"""Normalised gripper action of ``pd_ee_twist`` that holds the fingers open (0.04 m)."""
 
 
 def _tcp_pose(env: Any) -> torch.Tensor:
@@ -117,7 +115,7 @@ class SharedControlEnv(gym.Wrapper):
         method: the :class:`AssistanceMethod` (settable later via ``.method``); None = direct.
         rendered_context: in ``state_dict`` mode, replace the mesh-sampled cloud by a depth-camera
             cloud rendered once per scene (as ``rtv3 generate --context rendered`` stores it).
-        safety_filter: ``"neoss"`` puts the NEO collision damper (:class:`~rtv3_maniskill.control.neo_qp.
+        safety_filter: ``"neoss"`` puts the NEO collision damper (:class:`~rtv3_maniskill.robot.neo_qp.
             NeoSafetyFilter`, the paper's "w. NeoSS") in front of the method: the robot's twist is
             tracked by the QP controller ``pd_ee_twist_qp``, whose damper keeps the links and hand out
             of the table and objects (the fingers may touch the target); None = no filter.
@@ -161,10 +159,10 @@ class SharedControlEnv(gym.Wrapper):
         self.safety_filter = safety_filter
         self._filter = None
         if safety_filter == "neoss":
-            from rtv3_maniskill.control.neo_qp import NeoSafetyFilter
+            from rtv3_maniskill.robot.neo_qp import NeoSafetyFilter
 
             self._filter = NeoSafetyFilter()
-        self.gripper = GRIPPER_OPEN
+        self.gripper = features.GRIPPER_OPEN
         """Normalised gripper action sent with every step (1 = open, -1 = closed); stays open unless set."""
 
     @property
@@ -201,7 +199,7 @@ class SharedControlEnv(gym.Wrapper):
         obs = self._with_context(obs)
         self._obs = obs
         if self._filter is not None:  # a reset rebuilds the controllers: attach again every time
-            from rtv3_maniskill.tasks.twist_controller import attach_safety_filters, target_object_index
+            from rtv3_maniskill.robot.twist_controller import attach_safety_filters, target_object_index
 
             self._filter.reset(self.base.layouts[0], target_object=target_object_index(self.env))
             attach_safety_filters(self.env, [self._filter])

@@ -31,7 +31,7 @@ import numpy as np
 import pinocchio as pin
 import trimesh
 
-from rtv3_maniskill.tasks.scene_geometry import (
+from rtv3_maniskill.robot.scene_geometry import (
     ROBOT_BASE_POSITION,
     TABLE_TOP_CENTER,
     TABLE_TOP_HALF_SIZE,

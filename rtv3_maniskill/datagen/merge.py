@@ -18,7 +18,7 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from rtv3_maniskill.datasets.lerobot_export import REPO_ID
+from rtv3_maniskill.features import REPO_ID
 
 _CHUNK, _FILE = "meta/episodes/chunk_index", "meta/episodes/file_index"
 

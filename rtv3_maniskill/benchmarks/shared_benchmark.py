@@ -1,7 +1,7 @@
 """Simulated shared-control benchmark (paper Sec. "Simulated Shared Control Experiments", Table II).
 
 The authors' protocol (docs/PAPER_DETAILS.md, "Authors' benchmark protocol"): the goals are the
-*feasible* grasp candidates of each scene (:mod:`rtv3_maniskill.experiments.goals`: collision-free
+*feasible* grasp candidates of each scene (:mod:`rtv3_maniskill.benchmarks.goals`: collision-free
 IK at the pre-grasp and a free straight 5 cm approach; the others are counted by reason in
 ``goals.csv`` and never run), optionally a seeded random subset of ``goals_per_scene`` per scene;
 every trial starts from the Panda ready pose, and each simulated user drives towards the goal's
@@ -53,8 +53,9 @@ from typing import Any
 import numpy as np
 
 from rtv3_maniskill.features import pregrasp_poses
-from rtv3_maniskill.presets import EXECUTIONS, GOAL_RULES
+from rtv3_maniskill.presets import GOAL_RULES
 from rtv3_maniskill.records import RecordStore, SettingsMismatch, scene_seeds, select_targets
+from rtv3_maniskill.robot.execution import EXECUTIONS
 
 RESULT_FIELDS = (
     "scene_seed", "grasp_index", "user", "method", "outcome", "success", "collision", "steps",
@@ -632,7 +633,7 @@ def merge_runs(sources: Sequence[Path], output: Path) -> list[dict[str, Any]]:
 
 def trial_options(grasp_index: int) -> dict[str, Any]:
     """Reset options of one trial: its target, and the arm at the Panda ready pose."""
-    from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
+    from rtv3_maniskill.robot.scene_geometry import READY_QPOS
 
     return dict(target_grasp_index=int(grasp_index), init_qpos=READY_QPOS)
 
@@ -644,7 +645,7 @@ class _SceneRunner:
     def __init__(self, config: BenchmarkConfig, policy: Any = None) -> None:
         import torch
 
-        from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_speed_limits, make_method
+        from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_speed_limits, make_method
 
         torch.set_num_threads(1)
         self.config = config
@@ -675,8 +676,8 @@ class _SceneRunner:
         ``on_plan(n)`` the scene's number of trials, ``on_trial(row)`` each result as it finishes.
         Returns the new goal-check rows and the result rows.
         """
-        from rtv3_maniskill.experiments.episodes import run_episode
-        from rtv3_maniskill.experiments.goals import aimed_pregrasp, check_scene_goals
+        from rtv3_maniskill.benchmarks.episodes import run_episode
+        from rtv3_maniskill.benchmarks.goals import aimed_pregrasp, check_scene_goals
         from rtv3_maniskill.shared_control.simulated_users import make_user
 
         config, env = self.config, self.env
@@ -686,7 +687,7 @@ class _SceneRunner:
         unchecked = any(i not in checks for i in range(count))  # a scene not checked yet (or only in part)
         planner = None
         if unchecked or "oracle_plan" in self.methods:
-            from rtv3_maniskill.datasets.planner import PandaPlanner
+            from rtv3_maniskill.robot.planner import PandaPlanner
 
             planner = PandaPlanner(env.base.layouts[0])
         if unchecked:

@@ -20,8 +20,8 @@ from typing import Any
 
 import torch
 
-from rtv3_maniskill.datasets.session_recorder import OUTCOMES
 from rtv3_maniskill.features import DT
+from rtv3_maniskill.teleop.recorder import OUTCOMES
 
 
 @dataclass

@@ -6,7 +6,7 @@ For each grasp candidate of a scene (paper, "Simulation Setup and Data Collectio
    ready pose plus per-joint Gaussian noise (:func:`random_start_configuration`), so that the
    prior learns around the state every shared-control trial starts from;
 2. an OMPL/Pinocchio plan to the target's pre-grasp, and a check that the straight 5 cm
-   approach to the grasp is feasible (``rtv3_maniskill.datasets.planner``);
+   approach to the grasp is feasible (``rtv3_maniskill.robot.planner``);
 3. execution in ``GraspClutter-v1`` at 20 Hz with ``pd_joint_pos_vel`` control, then
    ``HOLD_STEPS`` steps holding the final pose (the model learns to stop, docs/PAPER_DETAILS.md). With
    ``end_at="pregrasp"`` (the paper's protocol: trajectories and users target the
@@ -28,8 +28,8 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import features
+from rtv3_maniskill.robot.starts import random_start_configuration
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
-from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
 
 HOLD_STEPS = 13
 END_AT = ("pregrasp", "grasp")
@@ -76,20 +76,6 @@ class Episode:
     history_prefix: np.ndarray | None = None
     """``(P, 27)`` states visited before ``state[0]`` (P < T), e.g. a DAgger rollout's: they enter the
     stored state histories of the first frames and are never frames (never action targets) themselves."""
-
-
-START_NOISE_STD = 0.6 * np.array([0.1, 0.04, 0.1, 0.04, 0.1, 0.1, 0.1])
-"""Per-joint standard deviation of the start distribution, as a fraction of each joint's range
-(docs/PAPER_DETAILS.md, "Authors' benchmark protocol")."""
-
-
-def random_start_configuration(rng: np.random.Generator, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """Arm joints ``(7,)`` from the authors' demonstration start distribution: the ready pose plus
-    Gaussian noise of standard deviation ``START_NOISE_STD * (upper - lower)`` per joint, clipped to
-    the joint limits ``lower``, ``upper`` ``(7,)`` (rad)."""
-    lower, upper = np.asarray(lower, dtype=np.float64)[:7], np.asarray(upper, dtype=np.float64)[:7]
-    q = READY_QPOS + rng.normal(size=7) * START_NOISE_STD * (upper - lower)
-    return np.clip(q, lower, upper)
 
 
 def describe_grasp(object_name: str, grasp_pose: np.ndarray) -> str:
@@ -247,5 +233,4 @@ class DemonstrationRecorder:
         )
 
 
-__all__ = ["DemonstrationRecorder", "END_AT", "Episode", "FAILURE_REASONS", "HOLD_STEPS", "describe_grasp",
-           "random_start_configuration"]
+__all__ = ["DemonstrationRecorder", "END_AT", "Episode", "FAILURE_REASONS", "HOLD_STEPS", "describe_grasp"]

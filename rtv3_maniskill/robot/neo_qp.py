@@ -22,7 +22,7 @@ reaches the target in one control period); ``pose_target_twist`` gives NEO's pro
 ``p_k`` to the obstacle's. Distances and witness points come from coal through Pinocchio
 (``PandaCollisionWorld.nearest_points``), Jacobians and the manipulability gradient from
 Pinocchio, the QP from ``qpsolvers`` (DAQP by default). No SAPIEN here: the simulator's control
-mode ``pd_ee_twist_qp`` (``tasks/twist_controller.py``) wraps this module.
+mode ``pd_ee_twist_qp`` (``robot/twist_controller.py``) wraps this module.
 
 Frames: ``q`` is ManiSkill's ``qpos[:7]``; twists are TCP body twists ``[v (m/s), w (rad/s)]`` in
 the TCP frame (``panda_hand_tcp``); everything geometric is in the world frame of the scene.
@@ -40,7 +40,7 @@ import qpsolvers
 import torch
 
 from rtv3_maniskill import se3
-from rtv3_maniskill.datasets.panda_model import (
+from rtv3_maniskill.robot.panda_model import (
     DOF,
     PANDA_VELOCITY_LIMITS,
     TABLE_OBJECT_INDEX,
@@ -49,7 +49,7 @@ from rtv3_maniskill.datasets.panda_model import (
     as_joint_vector,
     as_pose_matrix,
 )
-from rtv3_maniskill.tasks.scene_geometry import SceneGeometry
+from rtv3_maniskill.robot.scene_geometry import SceneGeometry
 
 FINGER_GEOMETRY_PREFIXES = ("panda_leftfinger", "panda_rightfinger")
 """Robot collision geometries that may touch the target object (``allowed_contact_links``)."""

@@ -196,7 +196,7 @@ def load_episodes(
     """Held-out episodes of the LeRobot dataset at ``dataset_root`` and a description of the choice."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from rtv3_maniskill.datasets.lerobot_export import REPO_ID
+    from rtv3_maniskill.features import REPO_ID
 
     root = Path(dataset_root).expanduser()
     if not (root / "meta" / "info.json").is_file():

@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from rtv3_maniskill.features import pregrasp_poses
+from rtv3_maniskill.robot.scene_geometry import READY_QPOS
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
-from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
 
 GOAL_CHECKS = ("feasible", "no_ik_pregrasp", "blocked_approach")
 """Outcomes of :func:`check_goal`: feasible, no collision-free IK at the pre-grasp, or the straight
@@ -40,7 +40,7 @@ def check_goal(planner, grasp_pose: np.ndarray, target_object: int, reference_tc
     """One of :data:`GOAL_CHECKS` for the grasp ``grasp_pose (4, 4)`` (world) of ``target_object``.
 
     Args:
-        planner: a :class:`~rtv3_maniskill.datasets.planner.PandaPlanner` of the scene.
+        planner: a :class:`~rtv3_maniskill.robot.planner.PandaPlanner` of the scene.
         reference_tcp: ``(4, 4)`` the TCP pose trials start from (picks the twin aimed at).
         seed: seeds the IK restarts.
     """
@@ -56,7 +56,7 @@ def check_goal(planner, grasp_pose: np.ndarray, target_object: int, reference_tc
 def check_scene_goals(env_base, planner=None, seed: int = 0) -> list[str]:
     """:func:`check_goal` for every candidate of the loaded scene of ``env_base`` (a single
     ``GraspClutter-v1`` env, unwrapped), in candidate order; padding rows are left out."""
-    from rtv3_maniskill.datasets.planner import PandaPlanner
+    from rtv3_maniskill.robot.planner import PandaPlanner
 
     if planner is None:
         planner = PandaPlanner(env_base.layouts[0])

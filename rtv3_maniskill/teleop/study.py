@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from rtv3_maniskill import features
-from rtv3_maniskill.datasets.session_recorder import ASSIST_MODES, SESSIONS_CSV, USER_TWIST
+from rtv3_maniskill.teleop.recorder import ASSIST_MODES, SESSIONS_CSV, USER_TWIST
 
 PLAN_FIELDS = ("participant", "order", "block", "method", "scene_group", "trial", "scene_seed", "practice")
 MEASURES = ("completion_time", "inputs", "translation_path", "rotation_path", "translation_path_adjusted",

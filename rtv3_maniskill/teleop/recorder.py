@@ -28,7 +28,8 @@ from typing import Any
 import numpy as np
 
 from rtv3_maniskill import features
-from rtv3_maniskill.datasets.lerobot_export import REPO_ID, dataset_features, state_histories
+from rtv3_maniskill.datagen.lerobot_export import dataset_features, state_histories
+from rtv3_maniskill.features import REPO_ID
 
 ASSIST_MODES = ("none", "user_only", "shared", "autonomous", "scripted")
 """``assist_mode`` codes: the index of the mode name (``none``: no method output yet)."""

@@ -176,9 +176,9 @@ class DaggerCollector:
         import gymnasium as gym
 
         from rtv3_maniskill import ENV_ID
-        from rtv3_maniskill.datasets.demonstrations import DemonstrationRecorder
-        from rtv3_maniskill.datasets.planner import PandaPlanner
-        from rtv3_maniskill.experiments.episodes import SharedControlEnv, controller_speed_limits
+        from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_speed_limits
+        from rtv3_maniskill.datagen.demonstrations import DemonstrationRecorder
+        from rtv3_maniskill.robot.planner import PandaPlanner
 
         self.config = config
         self.policy = policy
@@ -196,9 +196,9 @@ class DaggerCollector:
 
     def load_scene(self, scene_seed: int) -> list[int]:
         """Build the scene in both envs; the expert records with the rollout's rendered cloud.
-        Returns the feasible goals (:func:`~rtv3_maniskill.experiments.goals.check_scene_goals`, the
+        Returns the feasible goals (:func:`~rtv3_maniskill.benchmarks.goals.check_scene_goals`, the
         benchmark's rule), candidate indices."""
-        from rtv3_maniskill.experiments.goals import check_scene_goals
+        from rtv3_maniskill.benchmarks.goals import check_scene_goals
 
         self.env.reset(seed=scene_seed)
         self.recorder.load_scene(scene_seed)
@@ -212,11 +212,12 @@ class DaggerCollector:
         """One closed-loop rollout of ``driver`` towards grasp ``grasp`` of the loaded scene."""
 
         from rtv3_maniskill import features
-        from rtv3_maniskill.datasets.demonstrations import random_start_configuration, state_vector
-        from rtv3_maniskill.experiments.episodes import make_method
-        from rtv3_maniskill.experiments.planning import context_mask
+        from rtv3_maniskill.benchmarks.episodes import make_method
+        from rtv3_maniskill.benchmarks.planning import context_mask
+        from rtv3_maniskill.datagen.demonstrations import state_vector
+        from rtv3_maniskill.robot.scene_geometry import READY_QPOS
+        from rtv3_maniskill.robot.starts import random_start_configuration
         from rtv3_maniskill.shared_control.simulated_users import make_user
-        from rtv3_maniskill.tasks.scene_geometry import READY_QPOS
 
         method_name, user_name = parse_driver(driver)
         rng = np.random.default_rng(seed)
@@ -297,7 +298,7 @@ def _init_worker(setting: tuple[DaggerConfig, bool]) -> DaggerCollector:
     (a one-process run) also the staging area, written as each rollout and relabel finishes."""
     import torch
 
-    from rtv3_maniskill.datasets.lerobot_export import StagingArea
+    from rtv3_maniskill.datagen.lerobot_export import StagingArea
     from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
 
     config, write_through = setting
@@ -310,7 +311,7 @@ def _init_worker(setting: tuple[DaggerConfig, bool]) -> DaggerCollector:
 def _run_scene(collector: DaggerCollector, job: tuple[int, int, list[str]]) -> dict[str, Any]:
     """Roll out and relabel every not-yet-finished target of one scene; returns what to stage and
     counts for the summary."""
-    from rtv3_maniskill.datasets.lerobot_export import StagedScene, StagingArea
+    from rtv3_maniskill.datagen.lerobot_export import StagedScene, StagingArea
     from rtv3_maniskill.records import select_targets
 
     scene_index, scene_seed, done = job
@@ -353,7 +354,7 @@ def run_dagger(config: DaggerConfig, progress: bool = True, executor: str = "loc
     pool (``executor``: local processes or Ray); this process alone writes the staging area."""
     from tqdm import tqdm
 
-    from rtv3_maniskill.datasets.lerobot_export import StagingArea, export_lerobot_dataset
+    from rtv3_maniskill.datagen.lerobot_export import StagingArea, export_lerobot_dataset
     from rtv3_maniskill.policies.rtv3.checkpoints import resolve_checkpoint
     from rtv3_maniskill.records import scene_seeds
     from rtv3_maniskill.scene_pool import run_scenes

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from rtv3_maniskill.shared_control.teleop import (
+from rtv3_maniskill.teleop.devices import (
     KEYBOARD_BUTTONS,
     XBOX_PYGAME_AXES,
     XBOX_PYGAME_BUTTONS,

@@ -4,7 +4,7 @@ One maneuver class, a Gaussian (an :class:`~rtv3_maniskill.shared_control.oracle
 5 mm/s translation standard deviation, chosen on validation scenes: the straight oracles' 20 mm/s lets
 the noisy user's command pull the hand off the path) around the twist that follows the motion planner's
 collision-free path
-(:class:`~rtv3_maniskill.datasets.planner.PandaPlanner`: RRT-Connect, then TOPP-RA at 20 Hz) from the
+(:class:`~rtv3_maniskill.robot.planner.PandaPlanner`: RRT-Connect, then TOPP-RA at 20 Hz) from the
 arm's current configuration to the goal's pre-grasp: the body twist that reaches the path's pose
 ``lookahead_steps`` samples past the nearest one in that many control steps. When the hand is more
 than ``replan_distance`` from the path (the user or the fusion pulled it off), the path is planned

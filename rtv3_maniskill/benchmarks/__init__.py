@@ -1,0 +1,1 @@
+"""Evaluation: the episode loop with simulated users, goals, prediction, planning and the shared-control benchmark."""

@@ -1,1 +1,0 @@
-"""Reactive control: the NEO-style QP twist controller and its collision safety filter (NeoSS)."""

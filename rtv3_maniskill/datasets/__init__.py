@@ -1,1 +1,0 @@
-"""Demonstration data: the expert motion planner and (elsewhere) dataset writers."""
