@@ -10,7 +10,7 @@ import torch
 from scipy.stats import chi2, multivariate_normal
 
 from rtv3_maniskill import features
-from rtv3_maniskill.shared_control import posterior
+from rtv3_maniskill.shared_control import gaussians, mixture_entropy, mode_search, ood_gate, posterior, user_covariance
 from rtv3_maniskill.shared_control.shared_controller import SharedControlConfig, SharedController, surface_distance
 from rtv3_maniskill.twist_mixture import TwistMixture
 
@@ -41,7 +41,7 @@ def test_kalman_update_equals_information_form_product():
     cov = random_spd(gen, 5)
     obs = torch.randn(5, 3, generator=gen, dtype=DT) * 0.1
     obs_cov = random_spd(gen, 5)
-    new_mean, new_cov, gain = posterior.kalman_update(mean, cov, obs, obs_cov)
+    new_mean, new_cov, gain = gaussians.kalman_update(mean, cov, obs, obs_cov)
     info = torch.linalg.inv(cov) + torch.linalg.inv(obs_cov)
     expected_cov = torch.linalg.inv(info)
     expected_mean = (expected_cov @ (torch.linalg.solve(cov, mean[..., None])
@@ -58,7 +58,7 @@ def test_fused_gaussian_is_the_normalised_product_of_prior_and_likelihood():
     mu, v_u = rng.normal(0, 0.1, 3), rng.normal(0, 0.1, 3)
     a, b = rng.normal(0, 0.2, (3, 3)), rng.normal(0, 0.2, (3, 3))
     sigma, s_u = a @ a.T + 0.01 * np.eye(3), b @ b.T + 0.01 * np.eye(3)
-    new_mean, new_cov, _ = posterior.kalman_update(*(torch.tensor(x) for x in (mu, sigma, v_u, s_u)))
+    new_mean, new_cov, _ = gaussians.kalman_update(*(torch.tensor(x) for x in (mu, sigma, v_u, s_u)))
     xs = rng.normal(0, 0.3, (50, 3))
     log_ratio = (
         multivariate_normal(mu, sigma).logpdf(xs)
@@ -99,11 +99,11 @@ def test_fuse_user_command_per_class_translation_then_conditioned_rotation():
     user = torch.randn(b, 6, generator=gen, dtype=DT) * 0.1
     s_u, g_u = random_spd(gen, b), random_spd(gen, b)
     fused = posterior.fuse_user_command(mixture, user, s_u, g_u)
-    exp_mu, exp_sigma, _ = posterior.kalman_update(mu, sigma, user[:, None, :3].expand(b, k, 3), s_u[:, None])
+    exp_mu, exp_sigma, _ = gaussians.kalman_update(mu, sigma, user[:, None, :3].expand(b, k, 3), s_u[:, None])
     torch.testing.assert_close(fused.trans_mean, exp_mu)
     torch.testing.assert_close(fused.trans_cov, exp_sigma)
     omega_at_fused, gamma_at_fused = rot(exp_mu)
-    exp_omega, exp_gamma, _ = posterior.kalman_update(omega_at_fused, gamma_at_fused, user[:, None, 3:].expand(b, k, 3),
+    exp_omega, exp_gamma, _ = gaussians.kalman_update(omega_at_fused, gamma_at_fused, user[:, None, 3:].expand(b, k, 3),
                                                       g_u[:, None])
     torch.testing.assert_close(fused.rot_mean, exp_omega)
     torch.testing.assert_close(fused.rot_cov, exp_gamma)
@@ -177,7 +177,7 @@ def test_posterior_is_finite_for_degenerate_inputs():
     fused = posterior.fuse_user_command(mixture, far, s_u, g_u)
     for t in (fused.log_weights, fused.trans_mean, fused.trans_cov, fused.rot_mean, fused.rot_cov):
         assert torch.isfinite(t).all()
-    assert torch.isfinite(posterior.mixture_mode(fused)).all()
+    assert torch.isfinite(mode_search.mixture_mode(fused)).all()
     assert fused.weights.sum() == pytest.approx(1.0)
 
 
@@ -211,16 +211,16 @@ def _factorized(weights, means, trans_var, rot_var) -> posterior.FactorizedTwist
 
 def test_mode_of_single_gaussian_is_its_mean():
     m = _factorized([1.0], [[0.1, -0.2, 0.3, 0.4, 0.0, -0.1]], [0.01], [0.02])
-    torch.testing.assert_close(posterior.mixture_mode(m)[0], m.means[0, 0])
+    torch.testing.assert_close(mode_search.mixture_mode(m)[0], m.means[0, 0])
 
 
 def test_mode_between_overlapping_components_beats_every_component_mean():
     # Two equal, strongly overlapping classes: the mode is midway, not at either mean.
     m = _factorized([0.5, 0.5], [[-0.05, 0, 0, 0, 0, 0], [0.05, 0, 0, 0, 0, 0]], [0.01, 0.01], [0.01, 0.01])
-    mode = posterior.mixture_mode(m)
+    mode = mode_search.mixture_mode(m)
     assert mode[0].abs().max() < 1e-4
-    dens_mode = posterior.mixture_log_density(mode[:, None], m)
-    dens_means = posterior.mixture_log_density(m.means, m)
+    dens_mode = mode_search.mixture_log_density(mode[:, None], m)
+    dens_means = mode_search.mixture_log_density(m.means, m)
     assert (dens_mode > dens_means + 1e-4).all()
 
 
@@ -237,18 +237,18 @@ def test_mode_is_at_least_as_dense_as_random_samples():
     )
     samples = (m.means[:, torch.randint(0, k, (4000,), generator=gen)]
                + 0.05 * torch.randn(1, 4000, 6, generator=gen, dtype=DT))
-    best_sample = posterior.mixture_log_density(samples, m).max()
-    assert posterior.mixture_log_density(posterior.mixture_mode(m)[:, None], m)[0, 0] >= best_sample
+    best_sample = mode_search.mixture_log_density(samples, m).max()
+    assert mode_search.mixture_log_density(mode_search.mixture_mode(m)[:, None], m)[0, 0] >= best_sample
 
 
 def test_mode_search_stopping_early_finds_the_same_mode():
     # Two overlapping classes: the mode is not a component mean, so the iteration does the work.
     m = _factorized([0.6, 0.4], [[-0.05, 0.02, 0, 0.1, 0, 0], [0.05, 0, 0, 0, 0.1, 0]], [0.01, 0.02], [0.01, 0.03])
-    full = posterior.mixture_mode(m, num_iters=200, tol=0.0)
-    torch.testing.assert_close(posterior.mixture_mode(m, tol=1e-6), full, atol=1e-5, rtol=0)
-    assert not torch.allclose(posterior.mixture_mode(m, num_iters=0), full, atol=1e-5, rtol=0)
+    full = mode_search.mixture_mode(m, num_iters=200, tol=0.0)
+    torch.testing.assert_close(mode_search.mixture_mode(m, tol=1e-6), full, atol=1e-5, rtol=0)
+    assert not torch.allclose(mode_search.mixture_mode(m, num_iters=0), full, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="tol"):
-        posterior.mixture_mode(m, tol=float("nan"))
+        mode_search.mixture_mode(m, tol=float("nan"))
 
 
 def test_entropy_bounds_bracket_monte_carlo_entropy():
@@ -257,33 +257,33 @@ def test_entropy_bounds_bracket_monte_carlo_entropy():
     lw = torch.log(torch.tensor([[0.2, 0.5, 0.3]], dtype=DT))
     means = torch.randn(1, k, 3, generator=gen, dtype=DT) * 0.1
     covs = random_spd(gen, 1, k, scale=0.05)
-    lower, upper = posterior.mixture_entropy_bounds(lw, means, covs)
+    lower, upper = mixture_entropy.mixture_entropy_bounds(lw, means, covs)
     comp = torch.multinomial(lw.exp()[0], 20000, replacement=True, generator=gen)
     chol = torch.linalg.cholesky(covs[0])
     x = means[0, comp] + (chol[comp] @ torch.randn(20000, 3, 1, generator=gen, dtype=DT))[..., 0]
-    logp = torch.logsumexp(lw[0] + posterior.gaussian_log_prob(x[:, None], means[0], covs[0]), -1)
+    logp = torch.logsumexp(lw[0] + gaussians.gaussian_log_prob(x[:, None], means[0], covs[0]), -1)
     mc = -logp.mean()
     assert lower[0] - 0.02 <= mc <= upper[0] + 0.02
     assert lower[0] < upper[0]
     # single Gaussian: the upper bound is its exact entropy
-    _, up1 = posterior.mixture_entropy_bounds(torch.zeros(1, 1, dtype=DT), means[:, :1], covs[:, :1])
-    assert up1[0] == pytest.approx(float(posterior.gaussian_entropy(covs[0, 0])))
+    _, up1 = mixture_entropy.mixture_entropy_bounds(torch.zeros(1, 1, dtype=DT), means[:, :1], covs[:, :1])
+    assert up1[0] == pytest.approx(float(gaussians.gaussian_entropy(covs[0, 0])))
 
 
 # --------------------------------------------------------------------------- user covariance, OOD
 
 
 def test_ood_threshold_is_chi2_quantile_on_squared_mahalanobis():
-    assert posterior.ood_threshold(0.85) == pytest.approx(chi2.ppf(0.85, 3))
-    assert posterior.ood_threshold(0.85, 6) == pytest.approx(chi2.ppf(0.85, 6))
+    assert ood_gate.ood_threshold(0.85) == pytest.approx(chi2.ppf(0.85, 3))
+    assert ood_gate.ood_threshold(0.85, 6) == pytest.approx(chi2.ppf(0.85, 6))
     mixture = make_two_class_mixture()
     s_u, g_u = user_covs()
     near = posterior.fuse_user_command(mixture, torch.tensor([[0.3, 0, 0, 0, 0, 0.6]]), s_u, g_u)
     far = posterior.fuse_user_command(mixture, torch.tensor([[0.0, 0.0, 0.6, 0, 0, 0]]), s_u, g_u)
-    for covariance in posterior.OOD_COVARIANCES:
-        for dofs in posterior.OOD_DOFS:
-            assert not posterior.is_out_of_distribution(near, 0.85, covariance, dofs)[0]
-            assert posterior.is_out_of_distribution(far, 0.85, covariance, dofs)[0]
+    for covariance in ood_gate.OOD_COVARIANCES:
+        for dofs in ood_gate.OOD_DOFS:
+            assert not ood_gate.is_out_of_distribution(near, 0.85, covariance, dofs)[0]
+            assert ood_gate.is_out_of_distribution(far, 0.85, covariance, dofs)[0]
     # (0.3^2 + 0.6^2) to the nearest class, under Sigma_k + S_u = 0.032 I and Sigma_k = 0.002 I
     assert far.trans_mahalanobis_sq.min() == pytest.approx((0.09 + 0.36) / 0.032, rel=1e-4)
     assert far.trans_class_mahalanobis_sq.min() == pytest.approx((0.09 + 0.36) / 0.002, rel=1e-4)
@@ -294,12 +294,12 @@ def test_ood_gate_covariance_class_rejects_what_only_the_user_noise_would_explai
     mixture = make_two_class_mixture()
     s_u, g_u = user_covs()
     fused = posterior.fuse_user_command(mixture, torch.tensor([[0.3, 0.15, 0, 0, 0, 0.6]]), s_u, g_u)
-    assert posterior.is_out_of_distribution(fused, 0.85, "class", "translation")[0]
-    assert not posterior.is_out_of_distribution(fused, 0.85, "predictive", "translation")[0]
+    assert ood_gate.is_out_of_distribution(fused, 0.85, "class", "translation")[0]
+    assert not ood_gate.is_out_of_distribution(fused, 0.85, "predictive", "translation")[0]
     with pytest.raises(ValueError, match="covariance must be one of"):
-        posterior.is_out_of_distribution(fused, 0.85, "joint", "translation")
+        ood_gate.is_out_of_distribution(fused, 0.85, "joint", "translation")
     with pytest.raises(ValueError, match="dofs must be one of"):
-        posterior.is_out_of_distribution(fused, 0.85, "class", "rotation")
+        ood_gate.is_out_of_distribution(fused, 0.85, "class", "rotation")
 
 
 def test_ood_gate_tests_the_observed_blocks_of_the_command():
@@ -310,7 +310,7 @@ def test_ood_gate_tests_the_observed_blocks_of_the_command():
         command = torch.tensor([command])
         observed = command.abs() > 0 if missing_zeros else None
         fused = posterior.fuse_user_command(mixture, command, s_u, g_u, observed=observed)
-        return bool(posterior.is_out_of_distribution(fused, 0.85, "class", dofs)[0])
+        return bool(ood_gate.is_out_of_distribution(fused, 0.85, "class", dofs)[0])
 
     # translation only, matching class 1: its zero rotation is missing, not a command to hold still
     translation_only = [0.3, 0, 0, 0, 0, 0]
@@ -324,7 +324,7 @@ def test_ood_gate_tests_the_observed_blocks_of_the_command():
     # one axis tested against chi2(0.85, 1) = 2.07: 0.15 m/s off class 1's v_x (3.4 sigma) is OOD, 0.03 is not
     assert ood([0.45, 0, 0, 0, 0, 0], "twist") and not ood([0.33, 0, 0, 0, 0, 0], "twist")
     # a full twist matching class 1 passes every gate
-    for dofs in posterior.OOD_DOFS:
+    for dofs in ood_gate.OOD_DOFS:
         assert not ood([0.3, 0, 0, 0, 0, 0.6], dofs)
 
 
@@ -359,7 +359,7 @@ def test_shared_control_config_rejects_unknown_ood_gate_options():
 
 
 def test_user_covariance_follows_command_spread_but_not_below_floor():
-    est = posterior.UserCovarianceEstimator(batch_size=2)
+    est = user_covariance.UserCovarianceEstimator(batch_size=2)
     torch.testing.assert_close(est.trans_cov[0], 0.03 * torch.eye(3, dtype=DT))
     torch.testing.assert_close(est.rot_cov[1], 0.1 * torch.eye(3, dtype=DT))
     rng = np.random.default_rng(5)
@@ -387,8 +387,8 @@ def test_user_covariance_of_a_batch_equals_each_element_alone():
     b, steps = 4, 40
     commands = torch.from_numpy(rng.normal(0.0, 1.0, (steps, b, 6)) * np.array([0.3, 0.05, 0.01, 0.02])[:, None])
     active = torch.from_numpy(rng.random((steps, b)) < np.array([1.0, 0.7, 0.4, 0.1]))
-    batched = posterior.UserCovarianceEstimator(batch_size=b)
-    alone = [posterior.UserCovarianceEstimator(batch_size=1) for _ in range(b)]
+    batched = user_covariance.UserCovarianceEstimator(batch_size=b)
+    alone = [user_covariance.UserCovarianceEstimator(batch_size=1) for _ in range(b)]
     for t in range(steps):
         batched.update(commands[t], active[t])
         for i in range(b):

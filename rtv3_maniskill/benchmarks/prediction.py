@@ -299,13 +299,13 @@ def step0_calibration(mixture: Any, true_translation: torch.Tensor,
     perfect user: a calibrated prior covers ~``alpha``); ``nll`` the mixture's negative
     log-likelihood (nats); ``sigma_ml`` the geometric-mean standard deviation of the ML class (m/s).
     """
-    from rtv3_maniskill.shared_control import posterior
+    from rtv3_maniskill.shared_control import gaussians, ood_gate
 
-    threshold = posterior.ood_threshold(alpha, 3)
+    threshold = ood_gate.ood_threshold(alpha, 3)
     mu, cov = mixture.trans_mean.double(), mixture.trans_cov.double()
     true_v = true_translation.double()[:, None]  # (B, 1, 3) against K classes
-    maha = posterior.mahalanobis_sq(true_v, mu, cov)  # (B, K)
-    log_n = posterior.gaussian_log_prob(true_v, mu, cov)
+    maha = gaussians.mahalanobis_sq(true_v, mu, cov)  # (B, K)
+    log_n = gaussians.gaussian_log_prob(true_v, mu, cov)
     log_det = torch.linalg.slogdet(cov)[1]
     best = mixture.log_weights.argmax(-1)
     rows = torch.arange(best.shape[0])

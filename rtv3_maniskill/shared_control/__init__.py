@@ -2,19 +2,15 @@
 
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
 from rtv3_maniskill.shared_control.hindsight_optimization import HindsightOptimization
-from rtv3_maniskill.shared_control.posterior import (
-    FactorizedTwistMixture,
-    UserCovarianceEstimator,
-    fuse_user_command,
-    mixture_mode,
-    prior_twist_mixture,
-)
+from rtv3_maniskill.shared_control.mode_search import mixture_mode
+from rtv3_maniskill.shared_control.posterior import FactorizedTwistMixture, fuse_user_command, prior_twist_mixture
 from rtv3_maniskill.shared_control.shared_controller import (
     SharedControlConfig,
     SharedControlDiagnostics,
     SharedController,
 )
 from rtv3_maniskill.shared_control.simulated_users import SimulatedUser, make_user
+from rtv3_maniskill.shared_control.user_covariance import UserCovarianceEstimator
 
 __all__ = [
     "DirectTeleoperation",

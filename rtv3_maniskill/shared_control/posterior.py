@@ -18,93 +18,30 @@ both terms, which is the exact marginal ``∫ N(u; a, S_u) N(a; mu, Sigma) da`` 
 paper's own likelihood model ``p(u | a) = N(u; a, Sigma_sys)``. ``"fused"`` gives the
 docs/PAPER_DETAILS.md variant.
 
-All computation runs in float64; inputs may be float32. Covariances are symmetrised and
-their eigenvalues clamped to ``[MIN_VARIANCE, MAX_VARIANCE]`` before use, so no step can
-produce NaN from a near-singular network output.
+All computation runs in float64; inputs may be float32. Covariances are regularised
+(:func:`~rtv3_maniskill.shared_control.gaussians.regularize_covariance`) before use, so no step
+can produce NaN from a near-singular network output. The mode of the fused mixture (the executed
+action) is :mod:`~rtv3_maniskill.shared_control.mode_search`, the OOD gate on the command
+:mod:`~rtv3_maniskill.shared_control.ood_gate`, the user covariances ``S_u``, ``G_u``
+:mod:`~rtv3_maniskill.shared_control.user_covariance`.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
 import torch
 
+from rtv3_maniskill.shared_control.gaussians import (
+    MAX_VARIANCE,
+    gaussian_log_prob_and_mahalanobis_sq,
+    kalman_update,
+    mahalanobis_sq,
+    normalize_log_weights,
+    regularize_covariance,
+)
 from rtv3_maniskill.twist_mixture import TwistMixture
-
-MIN_VARIANCE = 1e-8
-"""Eigenvalue floor for every covariance (units m^2/s^2 or rad^2/s^2)."""
-MAX_VARIANCE = 1e6
-"""Eigenvalue ceiling for every covariance."""
-
-_LOG_2PI = math.log(2 * math.pi)
-
-
-# --------------------------------------------------------------------------- Gaussians
-
-
-def regularize_covariance(cov: torch.Tensor, min_var: float = MIN_VARIANCE,
-                          max_var: float = MAX_VARIANCE) -> torch.Tensor:
-    """Symmetrise ``(..., D, D)`` and clamp its eigenvalues to ``[min_var, max_var]``."""
-    sym = 0.5 * (cov + cov.transpose(-1, -2))
-    eigval, eigvec = torch.linalg.eigh(sym)
-    eigval = eigval.clamp(min_var, max_var)
-    return (eigvec * eigval[..., None, :]) @ eigvec.transpose(-1, -2)
-
-
-def gaussian_log_prob_and_mahalanobis_sq(
-    x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(log N(x; mean, cov), (x - mean)^T cov^-1 (x - mean))`` from one Cholesky factorisation.
-
-    ``x, mean (..., D)``, ``cov (..., D, D)`` SPD -> two ``(...)`` tensors.
-    """
-    chol = torch.linalg.cholesky(cov)
-    white = torch.linalg.solve_triangular(chol, (x - mean).unsqueeze(-1), upper=False).squeeze(-1)
-    maha = (white * white).sum(-1)
-    half_logdet = torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)
-    return -0.5 * (x.shape[-1] * _LOG_2PI + maha) - half_logdet, maha
-
-
-def gaussian_log_prob(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-    """``log N(x; mean, cov)`` for ``x, mean (..., D)``, ``cov (..., D, D)`` SPD -> ``(...)``."""
-    return gaussian_log_prob_and_mahalanobis_sq(x, mean, cov)[0]
-
-
-def mahalanobis_sq(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-    """Squared Mahalanobis distance ``(x - mean)^T cov^-1 (x - mean)`` -> ``(...)``."""
-    return gaussian_log_prob_and_mahalanobis_sq(x, mean, cov)[1]
-
-
-def gaussian_entropy(cov: torch.Tensor) -> torch.Tensor:
-    """Differential entropy ``0.5 log det(2 pi e cov)`` of ``(..., D, D)`` -> ``(...)`` nats."""
-    dim = cov.shape[-1]
-    return 0.5 * (dim * (1.0 + _LOG_2PI) + torch.linalg.slogdet(cov)[1])
-
-
-def kalman_update(
-    mean: torch.Tensor, cov: torch.Tensor, observation: torch.Tensor, observation_cov: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One Kalman update of ``N(mean, cov)`` with a direct observation ``N(observation; x, observation_cov)``.
-
-    Shapes ``(..., D)`` / ``(..., D, D)``. Returns ``(mean', cov', kalman_gain)`` with
-    ``kalman_gain = cov (cov + observation_cov)^-1`` (paper Eq. K_v / K_w). The covariance
-    uses the Joseph form ``(I-K) cov (I-K)^T + K R K^T``, algebraically equal to the paper's
-    ``(I - K) cov`` but symmetric positive definite in floating point.
-    """
-    innovation_cov = cov + observation_cov
-    # cov and innovation_cov are symmetric: K = cov S^-1 = (S^-1 cov)^T.
-    kalman_gain = torch.linalg.solve(innovation_cov, cov).transpose(-1, -2)
-    new_mean = mean + (kalman_gain @ (observation - mean).unsqueeze(-1)).squeeze(-1)
-    eye = torch.eye(mean.shape[-1], dtype=mean.dtype, device=mean.device)
-    i_minus_k = eye - kalman_gain
-    new_cov = (i_minus_k @ cov @ i_minus_k.transpose(-1, -2)
-               + kalman_gain @ observation_cov @ kalman_gain.transpose(-1, -2))
-    return new_mean, regularize_covariance(new_cov), kalman_gain
-
-
-# --------------------------------------------------------------------------- mixtures
 
 
 @dataclass
@@ -189,14 +126,10 @@ def _rotation_at(mixture: TwistMixture, translation: torch.Tensor) -> tuple[torc
     return omega.double(), regularize_covariance(gamma.double())
 
 
-def _normalize_log_weights(log_weights: torch.Tensor) -> torch.Tensor:
-    return log_weights - torch.logsumexp(log_weights, -1, keepdim=True)
-
-
 def _prior_translation(mixture: TwistMixture) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Normalised class log-weights ``(B, K)``, translation means and regularised covariances (float64)."""
     _check_mixture(mixture)
-    lw = _normalize_log_weights(mixture.log_weights.double())
+    lw = normalize_log_weights(mixture.log_weights.double())
     return lw, mixture.trans_mean.double(), regularize_covariance(mixture.trans_cov.double())
 
 
@@ -312,7 +245,7 @@ def _prior_and_fused(
     post_lw = torch.where(torch.isnan(post_lw), torch.full_like(post_lw, -math.inf), post_lw)
     no_support = ~torch.isfinite(post_lw).any(-1, keepdim=True)
     post_lw = torch.where(no_support, prior_lw, post_lw)  # every class -inf: keep the prior
-    post_lw = _normalize_log_weights(post_lw)
+    post_lw = normalize_log_weights(post_lw)
 
     return prior, FactorizedTwistMixture(
         log_weights=post_lw,
@@ -338,264 +271,3 @@ def _missing_axes_covariance(cov: torch.Tensor, observed: torch.Tensor) -> tuple
     keep = (observed[:, :, None] & observed[:, None, :]).to(cov.dtype)
     missing = torch.diag_embed((~observed).to(cov.dtype) * MAX_VARIANCE)
     return cov * keep + missing, missing
-
-
-# --------------------------------------------------------------------------- mode search
-
-
-def _whitened_components(m: FactorizedTwistMixture) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-class whitening of the 6-D mixture, computed once per mixture.
-
-    Returns ``W (B, K, 6, 6)`` block-diagonal with ``W_k^T W_k = P_k`` (the class precision;
-    ``W_k = blockdiag(L_v^-1, L_w^-1)`` from the Cholesky factors) and ``log_norm (B, K) =
-    log pi_k - 3 log 2pi - log det L_k``, so that ``log pi_k + log N_k(x) = log_norm_k -
-    0.5 |W_k (x - m_k)|^2``.
-    """
-    b, k = m.log_weights.shape
-    eye = torch.eye(3, dtype=m.trans_cov.dtype, device=m.trans_cov.device)
-    whiten = m.trans_cov.new_zeros(b, k, 6, 6)
-    log_det = m.log_weights.new_zeros(b, k)
-    for block, cov in ((slice(0, 3), m.trans_cov), (slice(3, 6), m.rot_cov)):
-        chol = torch.linalg.cholesky(cov)
-        whiten[..., block, block] = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
-        log_det = log_det + torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)
-    return whiten, m.log_weights - 3.0 * _LOG_2PI - log_det
-
-
-def _component_log_densities(
-    x: torch.Tensor, m: FactorizedTwistMixture, whitened: tuple[torch.Tensor, torch.Tensor] | None = None
-) -> torch.Tensor:
-    """``x (B, S, 6)`` -> ``(B, S, K)`` ``log pi_k + log N_k(x)``."""
-    whiten, log_norm = _whitened_components(m) if whitened is None else whitened
-    diff = x[:, :, None, :] - m.means[:, None]  # (B, S, K, 6)
-    white = torch.einsum("bkij,bskj->bski", whiten, diff)
-    return log_norm[:, None] - 0.5 * (white * white).sum(-1)
-
-
-def mixture_log_density(x: torch.Tensor, mixture: FactorizedTwistMixture) -> torch.Tensor:
-    """Log density of the 6-D mixture at ``x (B, S, 6)`` -> ``(B, S)``."""
-    return torch.logsumexp(_component_log_densities(x.double(), mixture), -1)
-
-
-def mixture_mode(
-    mixture: FactorizedTwistMixture, num_starts: int = 3, num_iters: int = 10, tol: float = 1e-6
-) -> torch.Tensor:
-    """Approximate mode ``(B, 6)`` of the 6-D mixture (the executed action).
-
-    The authors grid-search the mode. Here: evaluate the mixture density at every
-    component mean, start from the ``num_starts`` best means, and run ``num_iters``
-    fixed-point (Gaussian mean-shift) iterations
-    ``x <- (sum_k r_k(x) P_k)^-1 sum_k r_k(x) P_k m_k`` (``r_k`` responsibilities,
-    ``P_k`` precisions), whose fixed points are the stationary points of the density; the
-    iteration stops early once no iterate moves by more than ``tol`` (m/s, rad/s; with the
-    shipped prior that takes 2-3 iterations).
-    The highest-density point among the start means and the iterates is returned, so
-    the result is never worse than the best component mean.
-    """
-    if num_starts < 1 or num_iters < 0 or not tol >= 0:
-        raise ValueError(f"need num_starts >= 1, num_iters >= 0, tol >= 0; got {num_starts}, {num_iters}, {tol}")
-    means = mixture.means  # (B, K, 6)
-    b, k, _ = means.shape
-    whitened = _whitened_components(mixture)  # factorised once, reused by every iteration
-    at_means_components = _component_log_densities(means, mixture, whitened)  # (B, K, K)
-    at_means = torch.logsumexp(at_means_components, -1)  # (B, K)
-    s = min(num_starts, k)
-    start_density, start_idx = at_means.topk(s, dim=-1)  # (B, S)
-    x = torch.gather(means, 1, start_idx[..., None].expand(b, s, 6))
-    component = torch.gather(at_means_components, 1, start_idx[..., None].expand(b, s, k))  # (B, S, K) at x
-    candidates, densities = [x], [start_density]
-    precisions = whitened[0].transpose(-1, -2) @ whitened[0]  # P_k = W_k^T W_k, (B, K, 6, 6)
-    prec_means = (precisions @ means.unsqueeze(-1)).squeeze(-1)  # (B, K, 6)
-    for _ in range(num_iters):
-        resp = torch.softmax(component, -1)  # responsibilities r_k(x), (B, S, K)
-        a = torch.einsum("bsk,bkij->bsij", resp, precisions)
-        rhs = torch.einsum("bsk,bki->bsi", resp, prec_means)
-        x_next = torch.linalg.solve(a, rhs.unsqueeze(-1)).squeeze(-1)
-        converged = bool(((x_next - x).abs() <= tol).all())
-        x = x_next
-        component = _component_log_densities(x, mixture, whitened)
-        candidates.append(x)
-        densities.append(torch.logsumexp(component, -1))
-        if converged:
-            break
-    cand = torch.cat(candidates, 1)  # (B, S*(iters+1), 6)
-    dens = torch.cat(densities, 1)
-    dens = torch.where(torch.isfinite(dens), dens, torch.full_like(dens, -math.inf))
-    best = dens.argmax(-1)
-    return cand[torch.arange(b), best]
-
-
-# --------------------------------------------------------------------------- entropy
-
-
-def mixture_entropy_bounds(
-    log_weights: torch.Tensor, means: torch.Tensor, covs: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Lower and upper bounds ``(B,), (B,)`` (nats) on the entropy of a Gaussian mixture.
-
-    ``log_weights (B, K)``, ``means (B, K, D)``, ``covs (B, K, D, D)``. Huber et al. 2008:
-    upper ``sum_k pi_k (H(N_k) - log pi_k)``; lower
-    ``-sum_i pi_i log sum_j pi_j N(m_i; m_j, C_i + C_j)``.
-    """
-    lw = _normalize_log_weights(log_weights.double())
-    w = lw.exp()
-    covs = covs.double()
-    means = means.double()
-    safe_lw = torch.where(w > 0, lw, torch.zeros_like(lw))
-    upper = (w * (gaussian_entropy(covs) - safe_lw)).sum(-1)
-    pair_cov = regularize_covariance(covs[:, :, None] + covs[:, None, :])  # (B, K, K, D, D)
-    pair_lp = gaussian_log_prob(means[:, :, None], means[:, None, :], pair_cov)  # (B, K, K)
-    lower = -(w * torch.logsumexp(lw[:, None, :] + pair_lp, -1)).sum(-1)
-    return lower, upper
-
-
-def translation_entropy_bounds(mixture: FactorizedTwistMixture) -> tuple[torch.Tensor, torch.Tensor]:
-    """Entropy bounds ``(B,), (B,)`` of the translation marginal (the paper's "Trans Entropy")."""
-    return mixture_entropy_bounds(mixture.log_weights, mixture.trans_mean, mixture.trans_cov)
-
-
-def rotation_entropy_bounds(mixture: FactorizedTwistMixture) -> tuple[torch.Tensor, torch.Tensor]:
-    """Entropy bounds ``(B,), (B,)`` of the rotation marginal, each class's rotation Gaussian
-    taken at its (fused) translation mean."""
-    return mixture_entropy_bounds(mixture.log_weights, mixture.rot_mean, mixture.rot_cov)
-
-
-# --------------------------------------------------------------------------- OOD gate
-
-
-@functools.lru_cache(maxsize=64)
-def ood_threshold(alpha: float = 0.85, dof: int = 3) -> float:
-    """``chi2.ppf(alpha, dof)``: the gate on the squared Mahalanobis distance (docs/PAPER_DETAILS.md)."""
-    from scipy.stats import chi2
-
-    if not 0.0 < alpha < 1.0:
-        raise ValueError(f"OOD alpha must be in (0, 1), got {alpha}")
-    return float(chi2.ppf(alpha, dof))
-
-
-OOD_COVARIANCES = ("class", "predictive")
-OOD_DOFS = ("translation", "twist")
-"""Which blocks of the user command the OOD test looks at (see :func:`is_out_of_distribution`)."""
-
-
-def is_out_of_distribution(
-    fused: FactorizedTwistMixture, alpha: float, covariance: str = "class", dofs: str = "twist"
-) -> torch.Tensor:
-    """``(B,)`` bool: the user command is farther than ``chi2.ppf(alpha, d)`` (squared Mahalanobis,
-    ``d`` the number of observed axes tested) from *every* class, i.e. from the nearest one.
-
-    ``covariance``: ``"class"`` measures the distance under each class's own covariance (docs/PAPER_DETAILS.md:
-    "the Mahalanobis distance of the user translation to the nearest class": is the command a
-    plausible draw of one of the prior's maneuvers?); ``"predictive"`` adds the user covariance
-    (``Sigma_k + S_u``: the density of a noisy command; with the authors' ``S_u`` of 0.01-0.03
-    (m/s)^2 it accepts any command within ~0.3 m/s of a class mean, so a prior that has stalled
-    keeps control).
-
-    ``dofs``: ``"translation"`` (docs/PAPER_DETAILS.md) tests ``v_u``; ``"twist"`` the sum of the translation
-    and rotation distances to the same class (``v_u`` and ``w_u`` are independent given the
-    class). Only the observed axes of the command count (``fused.observed``; the marginal
-    distance, ``d`` = their number); with none observed the command is never OOD.
-    """
-    if covariance not in OOD_COVARIANCES:
-        raise ValueError(f"covariance must be one of {OOD_COVARIANCES}, got {covariance!r}")
-    if dofs not in OOD_DOFS:
-        raise ValueError(f"dofs must be one of {OOD_DOFS}, got {dofs!r}")
-    if covariance == "class":
-        trans, rot = fused.trans_class_mahalanobis_sq, fused.rot_class_mahalanobis_sq
-    else:
-        trans, rot = fused.trans_mahalanobis_sq, fused.rot_mahalanobis_sq
-    if trans is None or rot is None or fused.observed is None:
-        raise ValueError("this mixture carries no user command (use fuse_user_command)")
-    tested = fused.observed[:, :3].sum(-1)
-    maha = trans
-    if dofs == "twist":
-        tested = tested + fused.observed[:, 3:].sum(-1)
-        maha = trans + rot
-    thresholds = torch.tensor([math.inf] + [ood_threshold(alpha, d) for d in range(1, 7)], dtype=maha.dtype)
-    return maha.min(-1).values > thresholds[tested]
-
-
-# --------------------------------------------------------------------------- user covariance
-
-
-class UserCovarianceEstimator:
-    """Adaptive user-interface covariances ``S_u`` (translation) and ``G_u`` (rotation), per batch element.
-
-    docs/PAPER_DETAILS.md: start ``diag([0.03]*3 + [0.1]*3)``; keep the last 14 non-zero commands;
-    ``S <- 0.8 S + 0.2 sample-cov`` only while ``det^(1/3) > 0.01``. Our reading: the
-    translation and rotation blocks are updated separately (the posterior only uses the
-    two 3x3 blocks, and ``det^(1/3)`` is the geometric-mean variance of a 3x3 block); the
-    sample covariance is over the stored commands (at least ``min_samples``); an update is
-    applied only if the *updated* block keeps ``det^(1/3) > floor``, otherwise the block is
-    left as it is. So the covariance follows the user's command spread but never
-    collapses below a geometric-mean variance of ``floor`` (which would hand the user
-    full authority), and it can grow again when the user becomes noisier.
-    """
-
-    def __init__(
-        self,
-        batch_size: int = 1,
-        init_trans_var: float = 0.03,
-        init_rot_var: float = 0.1,
-        window: int = 14,
-        decay: float = 0.8,
-        floor: float = 0.01,
-        min_samples: int = 2,
-        adapt: bool = True,
-    ) -> None:
-        if batch_size < 1 or window < 2 or not 0.0 <= decay <= 1.0 or min_samples < 2 or min_samples > window:
-            raise ValueError(
-                f"bad UserCovarianceEstimator settings: batch_size={batch_size}, window={window}, "
-                f"decay={decay}, min_samples={min_samples}"
-            )
-        if init_trans_var <= 0 or init_rot_var <= 0 or floor <= 0:
-            raise ValueError("initial variances and floor must be positive")
-        self.batch_size = batch_size
-        self.init_trans_var = init_trans_var
-        self.init_rot_var = init_rot_var
-        self.window = window
-        self.decay = decay
-        self.floor = floor
-        self.min_samples = min_samples
-        self.adapt = adapt
-        self.reset()
-
-    def reset(self) -> None:
-        """Back to the initial diagonal covariances and an empty command buffer."""
-        b = self.batch_size
-        eye = torch.eye(3, dtype=torch.float64)
-        self.trans_cov = (self.init_trans_var * eye).expand(b, 3, 3).clone()
-        """``(B, 3, 3)`` S_u."""
-        self.rot_cov = (self.init_rot_var * eye).expand(b, 3, 3).clone()
-        """``(B, 3, 3)`` G_u."""
-        self._buffer = torch.zeros(b, self.window, 6, dtype=torch.float64)
-        self._count = torch.zeros(b, dtype=torch.long)
-
-    @property
-    def num_samples(self) -> torch.Tensor:
-        """``(B,)`` commands currently stored."""
-        return self._count.clamp(max=self.window)
-
-    def update(self, user_twist: torch.Tensor, active: torch.Tensor) -> None:
-        """Store the command ``(B, 6)`` of every element with ``active (B,)`` True and adapt."""
-        if user_twist.shape != (self.batch_size, 6) or active.shape != (self.batch_size,):
-            raise ValueError(
-                f"expected user_twist ({self.batch_size}, 6) and active ({self.batch_size},), "
-                f"got {tuple(user_twist.shape)} and {tuple(active.shape)}"
-            )
-        for i in torch.nonzero(active).flatten().tolist():
-            self._buffer[i, self._count[i] % self.window] = user_twist[i].double()
-            self._count[i] += 1
-            n = int(min(self._count[i], self.window))
-            if not self.adapt or n < self.min_samples:
-                continue
-            samples = self._buffer[i, :n]
-            centred = samples - samples.mean(0, keepdim=True)
-            sample_cov = centred.T @ centred / (n - 1)
-            for attr, block in (("trans_cov", slice(0, 3)), ("rot_cov", slice(3, 6))):
-                current = getattr(self, attr)
-                candidate = self.decay * current[i] + (1.0 - self.decay) * sample_cov[block, block]
-                candidate = 0.5 * (candidate + candidate.T)
-                det = torch.linalg.det(candidate)
-                if det > 0 and float(det) ** (1.0 / 3.0) > self.floor:
-                    current[i] = candidate

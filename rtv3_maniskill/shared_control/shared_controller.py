@@ -5,7 +5,7 @@ Per step and batch element, one of three modes (``SharedControlDiagnostics.modes
 * ``"shared"``: a user command arrived and is in distribution -> fuse it with the
   prior's step-0 mixture (:func:`posterior.prior_and_fused_mixtures`, which also gives the prior
   mixture, :func:`posterior.fuse_user_command` alone) and execute the mode of
-  the fused mixture (:func:`posterior.mixture_mode`). The zero axes of a command are, by
+  the fused mixture (:func:`mode_search.mixture_mode`). The zero axes of a command are, by
   default (``uncommanded_axes="missing_unused"``), axes the device does not give, not fused, so
   the prior fills them in (a mode-switching or single-axis user), as long as the user has never
   commanded that axis and the EE is farther than ``autonomy_cutoff_distance`` from the scene; a
@@ -19,7 +19,7 @@ Per step and batch element, one of three modes (``SharedControlDiagnostics.modes
   no command within ``autonomy_cutoff_distance`` of the object surface (the user has
   control for the final approach), (b) in the out-of-distribution window: the command's
   observed axes are farther than ``chi2.ppf(ood_alpha, d)`` (squared Mahalanobis under the
-  class covariances, ``d`` observed axes; :func:`posterior.is_out_of_distribution` for the
+  class covariances, ``d`` observed axes; :func:`ood_gate.is_out_of_distribution` for the
   variants in docs/PAPER_DETAILS.md) from every class -> this step and the next ``ood_steps`` steps, class
   weights kept at the prior's (no re-weighting with an OOD command); a new OOD command
   inside the window restarts it, (c) the documented fallback for an empty grasp set:
@@ -44,9 +44,11 @@ from typing import Any, Protocol
 import torch
 
 from rtv3_maniskill import features
-from rtv3_maniskill.shared_control import posterior
+from rtv3_maniskill.shared_control import mixture_entropy, ood_gate, posterior
 from rtv3_maniskill.shared_control.goal_belief import GoalBelief
+from rtv3_maniskill.shared_control.mode_search import mixture_mode
 from rtv3_maniskill.shared_control.twist_utils import check_speed_limits, clamp_twist_speed, step_inputs
+from rtv3_maniskill.shared_control.user_covariance import UserCovarianceEstimator
 from rtv3_maniskill.twist_mixture import TwistMixture
 
 MODES = ("shared", "autonomous", "user_only")
@@ -91,10 +93,10 @@ class SharedControlConfig:
     ood_covariance: str = "predictive"
     """Covariance of the OOD test's Mahalanobis distance: ``"predictive"`` (``Sigma_k + S_u``: a
     command is judged with the user's own noise) or ``"class"`` (``Sigma_k``, docs/PAPER_DETAILS.md's
-    "distance to the nearest class", the paper's reading); see :func:`posterior.is_out_of_distribution`."""
+    "distance to the nearest class", the paper's reading); see :func:`ood_gate.is_out_of_distribution`."""
     ood_dofs: str = "twist"
     """What the OOD test looks at: ``"twist"`` (translation and rotation) or ``"translation"``
-    (docs/PAPER_DETAILS.md); see :func:`posterior.is_out_of_distribution`."""
+    (docs/PAPER_DETAILS.md); see :func:`ood_gate.is_out_of_distribution`."""
     uncommanded_axes: str = "missing_unused"
     """How a zero axis of a user command (``|u_i| <= input_threshold``) of a command that is not
     zero altogether is read: ``"missing"``, an axis the device does not give (a mode-switching
@@ -148,7 +150,7 @@ class SharedControlConfig:
     100 was chosen on validation goals."""
     mode_search_starts: int = 3
     mode_search_iters: int = 10
-    """Most mean-shift iterations of the mode search (:func:`posterior.mixture_mode`)."""
+    """Most mean-shift iterations of the mode search (:func:`mode_search.mixture_mode`)."""
     mode_search_tol: float = 1e-6
     """Stop the mode search once no iterate moves by more than this (m/s, rad/s)."""
 
@@ -174,10 +176,10 @@ class SharedControlConfig:
             raise ValueError(f"table_height must be a finite height (m) or None, got {self.table_height}")
         if self.ood_steps < 0:
             raise ValueError(f"ood_steps must be >= 0, got {self.ood_steps}")
-        if self.ood_covariance not in posterior.OOD_COVARIANCES:
-            raise ValueError(f"ood_covariance must be one of {posterior.OOD_COVARIANCES}, got {self.ood_covariance!r}")
-        if self.ood_dofs not in posterior.OOD_DOFS:
-            raise ValueError(f"ood_dofs must be one of {posterior.OOD_DOFS}, got {self.ood_dofs!r}")
+        if self.ood_covariance not in ood_gate.OOD_COVARIANCES:
+            raise ValueError(f"ood_covariance must be one of {ood_gate.OOD_COVARIANCES}, got {self.ood_covariance!r}")
+        if self.ood_dofs not in ood_gate.OOD_DOFS:
+            raise ValueError(f"ood_dofs must be one of {ood_gate.OOD_DOFS}, got {self.ood_dofs!r}")
         if self.uncommanded_axes not in UNCOMMANDED_AXES:
             raise ValueError(f"uncommanded_axes must be one of {UNCOMMANDED_AXES}, got {self.uncommanded_axes!r}")
         if self.reweight_rotation_at not in ("prior", "fused"):
@@ -185,7 +187,7 @@ class SharedControlConfig:
         if self.mode_search_starts < 1 or self.mode_search_iters < 0 or not self.mode_search_tol >= 0:
             raise ValueError("need mode_search_starts >= 1, mode_search_iters >= 0 and mode_search_tol >= 0, got "
                              f"{self.mode_search_starts}, {self.mode_search_iters}, {self.mode_search_tol}")
-        posterior.ood_threshold(self.ood_alpha)  # validates alpha
+        ood_gate.ood_threshold(self.ood_alpha)  # validates alpha
         if not 0.0 <= self.belief_memory <= 1.0:
             raise ValueError(f"belief_memory must be in [0, 1], got {self.belief_memory}")
         if self.goal_belief_margin is not None and not (math.isfinite(self.goal_belief_margin)
@@ -254,7 +256,8 @@ class SharedControlDiagnostics:
         if self.mixture is None:
             nan = torch.full((len(self.modes),), math.nan, dtype=torch.float64)
             return nan, nan.clone(), nan.clone(), nan.clone()
-        return (*posterior.translation_entropy_bounds(self.mixture), *posterior.rotation_entropy_bounds(self.mixture))
+        return (*mixture_entropy.translation_entropy_bounds(self.mixture),
+                *mixture_entropy.rotation_entropy_bounds(self.mixture))
 
     @property
     def trans_entropy_lower(self) -> torch.Tensor:
@@ -336,7 +339,7 @@ class SharedController:
         self._ood_remaining = torch.zeros(0, dtype=torch.long)
         self._commanded_axes = torch.zeros(0, 6, dtype=torch.bool)
         """``(B, 6)`` axes the user has commanded since ``reset()`` (the device's axes; ``missing_far*``)."""
-        self._user_cov: posterior.UserCovarianceEstimator | None = None
+        self._user_cov: UserCovarianceEstimator | None = None
         self._evidence: torch.Tensor | None = None
         """``(B, K)`` accumulated log-likelihood of the user's commands per class (``belief_memory``)."""
         self._goal_belief = self._make_goal_belief()
@@ -389,7 +392,7 @@ class SharedController:
             self._batch_size = b
             self._ood_remaining = torch.zeros(b, dtype=torch.long)
             self._commanded_axes = torch.zeros(b, 6, dtype=torch.bool)
-            self._user_cov = posterior.UserCovarianceEstimator(
+            self._user_cov = UserCovarianceEstimator(
                 batch_size=b,
                 init_trans_var=c.user_trans_var,
                 init_rot_var=c.user_rot_var,
@@ -480,7 +483,7 @@ class SharedController:
             if (active & ~no_grasps).any():
                 prior, fused = posterior.prior_and_fused_mixtures(
                     mixture, user, s_u, g_u, c.reweight_rotation_at, observed=observed)
-                fired = (active & posterior.is_out_of_distribution(fused, c.ood_alpha, c.ood_covariance, c.ood_dofs)
+                fired = (active & ood_gate.is_out_of_distribution(fused, c.ood_alpha, c.ood_covariance, c.ood_dofs)
                          & ~no_grasps)
             else:
                 prior = posterior.prior_twist_mixture(mixture)
@@ -493,7 +496,7 @@ class SharedController:
                 autonomous = torch.zeros_like(autonomous)
             if shared.any():
                 assert fused is not None
-                mode = posterior.mixture_mode(fused, c.mode_search_starts, c.mode_search_iters, c.mode_search_tol)
+                mode = mixture_mode(fused, c.mode_search_starts, c.mode_search_iters, c.mode_search_tol)
                 action = torch.where(shared[:, None], mode, action)
             if autonomous.any():
                 action = torch.where(autonomous[:, None], most_likely_twist(prior), action)
