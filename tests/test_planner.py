@@ -8,13 +8,9 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from rtv3_maniskill.robot.panda_model import (
-    REST_QPOS,
-    CollisionMargins,
-    PandaCollisionWorld,
-    PandaKinematics,
-    panda_asset_dir,
-)
+from rtv3_maniskill.robot.collision_world import CollisionMargins, PandaCollisionWorld
+from rtv3_maniskill.robot.panda_hand import panda_asset_dir
+from rtv3_maniskill.robot.panda_model import REST_QPOS, PandaKinematics
 from rtv3_maniskill.robot.planner import FAILURE_REASONS, PandaPlanner
 from rtv3_maniskill.robot.scene_geometry import (
     READY_QPOS,

@@ -40,11 +40,10 @@ import qpsolvers
 import torch
 
 from rtv3_maniskill import se3
+from rtv3_maniskill.robot.collision_world import TABLE_OBJECT_INDEX, PandaCollisionWorld
 from rtv3_maniskill.robot.panda_model import (
     DOF,
     PANDA_VELOCITY_LIMITS,
-    TABLE_OBJECT_INDEX,
-    PandaCollisionWorld,
     PandaKinematics,
     as_joint_vector,
     as_pose_matrix,

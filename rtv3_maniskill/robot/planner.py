@@ -40,13 +40,12 @@ import toppra.constraint
 import torch
 
 from rtv3_maniskill import se3
+from rtv3_maniskill.robot.collision_world import CollisionMargins, PandaCollisionWorld
 from rtv3_maniskill.robot.panda_model import (
     DOF,
     PANDA_ACCELERATION_LIMITS,
     PANDA_VELOCITY_LIMITS,
     REST_QPOS,
-    CollisionMargins,
-    PandaCollisionWorld,
     PandaKinematics,
     as_joint_vector,
     as_pose_matrix,
@@ -279,10 +278,6 @@ class PandaPlanner:
         """Whether ``q (7,)`` is within limits and collision-free under the free-space margins."""
         self._use_margins(self.config.margins)
         return self.world.is_collision_free(q, ignore_objects)
-
-    def min_distance(self, q, ignore_objects: Iterable[int] = ()) -> float:
-        """Smallest robot-obstacle distance (m) at ``q (7,)``, table included."""
-        return self.world.min_distance(q, ignore_objects)
 
     def motion_collision_free(self, qs: np.ndarray, ignore_objects: Iterable[int] = (),
                               resolution: float | None = None) -> bool:
