@@ -1,6 +1,6 @@
 """Latency of one RT-V3 shared-control step on CPU, prior included (target <= 10 ms).
 
-Usage: ``python scripts/benchmark_shared_controller.py [--policy.path DIR] [--steps 200] [--repeats 3] [--threads 1]
+Usage: ``python benchmarks/benchmark_shared_controller.py [--policy.path DIR] [--steps 200] [--repeats 3] [--threads 1]
 [--goal-belief-margin NATS|off]``
 
 Times :meth:`SharedController.step` (prior forward pass + posterior fusion + mode search) on real

@@ -1,9 +1,8 @@
 #!/usr/bin/env python
 """End-to-end training throughput of ``lerobot-train --policy.type=rtv3``: old vs. new data path.
 
-Old: ``--baseline COMMIT``'s code (e.g. the commit before the training cache: LeRobot windows ``action``
-over H = 12 frames, re-reading each frame's point cloud and grasps), or without ``--baseline`` this code
-with ``--policy.training_cache=false`` (the data path alone). New: this tree with its defaults (one row
+Old: ``--baseline COMMIT``'s code (e.g. 735c219, the commit before the training cache: LeRobot windows
+``action`` over H = 12 frames, re-reading each frame's point cloud and grasps). New: this tree (one row
 per sample, windows cut from the policy's in-memory training cache). Both run LeRobot's own training
 script on the same dataset and batch size, with 1 data worker and 1 thread each by default (as the
 measurement in docs/RESULTS.md, "Training throughput"), interleaved (old, new, new, old, ...) so that drifts of the
@@ -22,7 +21,7 @@ first.
 Example (dataset: ``rtv3 generate --num-scenes 20 --grasps-per-scene 8 --num-points 512
 --output /tmp/bench_ds --seed 3 --context mesh``)::
 
-    .venv/bin/python scripts/benchmark_training.py --dataset /tmp/bench_ds --batch-size 64 --baseline 735c219
+    .venv/bin/python benchmarks/benchmark_training.py --dataset /tmp/bench_ds --batch-size 64 --baseline 735c219
 """
 
 from __future__ import annotations
@@ -38,9 +37,8 @@ import tempfile
 import time
 from pathlib import Path
 
-PATHS = {"old": ["--policy.training_cache=false"], "new": []}
 BASELINE_SRC: Path | None = None
-"""With --baseline: the extracted ``rtv3_maniskill`` package of that commit, put first on the old runs' path."""
+"""The extracted ``rtv3_maniskill`` package of that commit, put first on the old runs' path."""
 WINDOW = re.compile(r"step:(\S+) .*updt_s:([0-9.]+) data_s:([0-9.]+)")
 
 
@@ -53,14 +51,13 @@ def run_training(dataset: Path, path: str, batch_size: int, steps: int, log_freq
             sys.executable, "-m", "lerobot.scripts.lerobot_train", f"--dataset.repo_id={repo_id}",
             f"--dataset.root={dataset}", "--policy.type=rtv3", "--policy.device=cpu", "--policy.push_to_hub=false",
             f"--steps={steps}", f"--batch_size={batch_size}", f"--log_freq={log_freq}", "--save_checkpoint=false",
-            f"--output_dir={Path(tmp) / 'out'}", "--wandb.enable=false", *PATHS[path], *extra,
+            f"--output_dir={Path(tmp) / 'out'}", "--wandb.enable=false", *extra,
         ]
         if num_workers is not None:
             cmd.append(f"--num_workers={num_workers}")
         env = dict(os.environ, **({"OMP_NUM_THREADS": str(threads)} if threads else {}))
-        if path == "old" and BASELINE_SRC is not None:  # the whole old code, with its own default data path
+        if path == "old":  # the whole old code, with its own default data path
             env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(BASELINE_SRC), env.get("PYTHONPATH")]))
-            cmd = [c for c in cmd if c not in PATHS["old"]]
         # cwd: a neutral folder (python -m puts the working directory first on the path)
         result = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp)
     if result.returncode != 0:
@@ -94,9 +91,9 @@ def main() -> None:
     parser.add_argument("--num-workers", type=int, default=1,
                         help="DataLoader workers (--num_workers; -1: LeRobot's default, 4)")
     parser.add_argument("--threads", type=int, default=1, help="OMP_NUM_THREADS of the training process (0: unset)")
-    parser.add_argument("--baseline", default=None,
-                        help="git commit whose rtv3_maniskill runs the old path (e.g. the commit before the training "
-                             "cache); default: this code with --policy.training_cache=false")
+    parser.add_argument("--baseline", required=True,
+                        help="git commit whose rtv3_maniskill runs the old path (e.g. 735c219, the commit before the "
+                             "training cache)")
     parser.add_argument("--compact", action="store_true",
                         help="also time the compact-cache trainer (rtv3 compact-cache) on the same data")
     parser.add_argument("extra", nargs="*", help="more lerobot-train flags for both paths (after --)")
@@ -105,17 +102,16 @@ def main() -> None:
 
     global BASELINE_SRC
     tmp = tempfile.TemporaryDirectory(prefix="rtv3_bench_baseline_")
-    if args.baseline:
-        repo = Path(__file__).resolve().parents[1]
-        archive = subprocess.run(["git", "-C", str(repo), "archive", args.baseline, "rtv3_maniskill"], check=True,
-                                 capture_output=True).stdout
-        subprocess.run(["tar", "-x", "-C", tmp.name], input=archive, check=True)
-        BASELINE_SRC = Path(tmp.name)
-        probe = subprocess.run([sys.executable, "-c", "import rtv3_maniskill; print(rtv3_maniskill.__file__)"],
-                               capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=tmp.name),
-                               cwd=tempfile.gettempdir())
-        if not probe.stdout.startswith(tmp.name):
-            raise RuntimeError(f"the baseline package does not shadow the installed one: {probe.stdout}{probe.stderr}")
+    repo = Path(__file__).resolve().parents[1]
+    archive = subprocess.run(["git", "-C", str(repo), "archive", args.baseline, "rtv3_maniskill"], check=True,
+                             capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", tmp.name], input=archive, check=True)
+    BASELINE_SRC = Path(tmp.name)
+    probe = subprocess.run([sys.executable, "-c", "import rtv3_maniskill; print(rtv3_maniskill.__file__)"],
+                           capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=tmp.name),
+                           cwd=tempfile.gettempdir())
+    if not probe.stdout.startswith(tmp.name):
+        raise RuntimeError(f"the baseline package does not shadow the installed one: {probe.stdout}{probe.stderr}")
     rates: dict[str, list[float]] = {"old": [], "new": [], "compact": []}
     paths = ("old", "new", "compact") if args.compact else ("old", "new")
     if args.compact:
@@ -137,8 +133,7 @@ def main() -> None:
     old, new = statistics.median(rates["old"]), statistics.median(rates["new"])
     print(f"batch {args.batch_size}, {args.rounds} interleaved rounds, {args.steps} steps per run, "
           f"num_workers {args.num_workers}, OMP_NUM_THREADS {args.threads or 'unset'}")
-    label = f"commit {args.baseline}" if args.baseline else "--policy.training_cache=false"
-    print(f"old ({label}): {old:7.1f} samples/s  ({args.batch_size / old:.3f} s/step)")
+    print(f"old (commit {args.baseline}): {old:7.1f} samples/s  ({args.batch_size / old:.3f} s/step)")
     print(f"new (this tree, defaults): {new:7.1f} samples/s  ({args.batch_size / new:.3f} s/step)")
     print(f"ratio new/old: {new / old:.2f}x")
     if args.compact:

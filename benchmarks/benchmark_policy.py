@@ -1,6 +1,6 @@
 """Benchmark the RT-V3 policy on CPU: ``select_action`` latency and training throughput.
 
-Usage: ``python scripts/benchmark_policy.py [--threads 2] [--steps 200] [--repeats 3] [--train-batches 5]
+Usage: ``python benchmarks/benchmark_policy.py [--threads 2] [--steps 200] [--repeats 3] [--train-batches 5]
 [--policy.path DIR] [--cloud table-box|surface|volume] [--scene-seed S] [--point-stem-poolings K] [--device cuda]``
 
 Inputs are synthetic but shaped like the dataset (N = 2048 points, M = 64 grasps, T = 8, H = 12), every
