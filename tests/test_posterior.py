@@ -11,7 +11,9 @@ from scipy.stats import chi2, multivariate_normal
 
 from rtv3_maniskill import features
 from rtv3_maniskill.shared_control import gaussians, mixture_entropy, mode_search, ood_gate, posterior, user_covariance
-from rtv3_maniskill.shared_control.shared_controller import SharedControlConfig, SharedController, surface_distance
+from rtv3_maniskill.shared_control.autonomy import surface_distance
+from rtv3_maniskill.shared_control.config import SharedControlConfig
+from rtv3_maniskill.shared_control.shared_controller import SharedController
 from rtv3_maniskill.twist_mixture import TwistMixture
 
 DT = torch.float64
