@@ -11,7 +11,8 @@ from scipy.spatial.transform import Rotation
 from rtv3_maniskill.robot.collision_world import CollisionMargins, PandaCollisionWorld
 from rtv3_maniskill.robot.panda_hand import panda_asset_dir
 from rtv3_maniskill.robot.panda_model import REST_QPOS, PandaKinematics
-from rtv3_maniskill.robot.planner import FAILURE_REASONS, PandaPlanner
+from rtv3_maniskill.robot.planner import PandaPlanner
+from rtv3_maniskill.robot.planner_config import PlannerConfig
 from rtv3_maniskill.robot.scene_geometry import (
     READY_QPOS,
     ROBOT_BASE_POSITION,
@@ -19,6 +20,7 @@ from rtv3_maniskill.robot.scene_geometry import (
     ObjectGeometry,
     SceneGeometry,
 )
+from rtv3_maniskill.robot.trajectory import FAILURE_REASONS
 
 TOP_DOWN = np.diag([1.0, -1.0, -1.0])
 """TCP rotation pointing the approach (z) axis straight down."""
@@ -236,6 +238,10 @@ def test_bad_inputs_are_rejected(wall_planner):
         wall_planner.plan_to_pose(REST_QPOS, np.diag([2.0, 1.0, 1.0, 1.0]))
     with pytest.raises(ValueError, match="unknown object"):
         wall_planner.is_collision_free(REST_QPOS, ignore_objects={5})
+    with pytest.raises(ValueError, match="max_tcp_speed"):
+        PlannerConfig(max_tcp_speed=0.0)
+    with pytest.raises(ValueError, match="ik_attempts"):
+        PlannerConfig(ik_attempts=0)
 
 
 # ---------------------------------------------------------------------- straight-line approach

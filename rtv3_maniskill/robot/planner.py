@@ -11,6 +11,12 @@ pose to the target", Sec. V-A); here:
 * ``plan_straight_line``: the final Cartesian approach (pre-grasp -> grasp along the
   approach axis), a minimum-jerk SE(3) interpolation solved by IK sample by sample.
 
+The search is :mod:`~rtv3_maniskill.robot.ompl_rrt`, the timing
+:mod:`~rtv3_maniskill.robot.time_parametrization`, the settings
+:class:`~rtv3_maniskill.robot.planner_config.PlannerConfig` and the results
+:mod:`~rtv3_maniskill.robot.trajectory`; this module holds IK, the collision checks of
+motions and the straight-line approach.
+
 All poses are ``(4, 4)`` world-frame transforms of ManiSkill's TCP link
 ``panda_hand_tcp`` (z = approach axis, y = finger closing axis; see ``panda_model``).
 Joint vectors are ``(7,)`` arm joints in radians (fingers locked open).
@@ -28,19 +34,13 @@ import math
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
-import ompl.base as ob
-import ompl.geometric as og
-import ompl.util as ou
-import toppra
-import toppra.algorithm
-import toppra.constraint
 import torch
 
 from rtv3_maniskill import se3
 from rtv3_maniskill.robot.collision_world import CollisionMargins, PandaCollisionWorld
+from rtv3_maniskill.robot.ompl_rrt import rrt_connect
 from rtv3_maniskill.robot.panda_model import (
     DOF,
     PANDA_ACCELERATION_LIMITS,
@@ -50,86 +50,10 @@ from rtv3_maniskill.robot.panda_model import (
     as_joint_vector,
     as_pose_matrix,
 )
+from rtv3_maniskill.robot.planner_config import PlannerConfig
 from rtv3_maniskill.robot.scene_geometry import SceneGeometry
-
-FailureReason = Literal["ik_failed", "start_in_collision", "goal_in_collision", "planning_failed", "timeout"]
-FAILURE_REASONS: tuple[str, ...] = ("ik_failed", "start_in_collision", "goal_in_collision", "planning_failed",
-                                    "timeout")
-
-ou.setLogLevel(ou.LogLevel.LOG_WARN)
-
-
-@dataclass
-class JointTrajectory:
-    """A time-parameterized arm trajectory sampled at the control rate.
-
-    ``q`` ``(S, 7)`` joint positions (rad), ``qd`` ``(S, 7)`` joint velocities (rad/s),
-    ``t`` ``(S,)`` times (s) from 0 in steps of ``dt``. The last sample is the goal,
-    at rest.
-    """
-
-    q: np.ndarray
-    qd: np.ndarray
-    t: np.ndarray
-
-    def __post_init__(self) -> None:
-        self.q = np.asarray(self.q, dtype=np.float64)
-        self.qd = np.asarray(self.qd, dtype=np.float64)
-        self.t = np.asarray(self.t, dtype=np.float64)
-        if self.q.ndim != 2 or self.q.shape[1] != DOF:
-            raise ValueError(f"q must be (S, 7), got {self.q.shape}")
-        if self.qd.shape != self.q.shape:
-            raise ValueError(f"qd must match q's shape {self.q.shape}, got {self.qd.shape}")
-        if self.t.shape != (self.q.shape[0],):
-            raise ValueError(f"t must be ({self.q.shape[0]},), got {self.t.shape}")
-        if not (np.isfinite(self.q).all() and np.isfinite(self.qd).all() and np.isfinite(self.t).all()):
-            raise ValueError("trajectory contains NaN or inf")
-
-    @property
-    def duration(self) -> float:
-        """Time of the last sample (s)."""
-        return float(self.t[-1]) if len(self.t) else 0.0
-
-    def __len__(self) -> int:
-        return self.q.shape[0]
-
-    def concatenate(self, other: JointTrajectory) -> JointTrajectory:
-        """This trajectory followed by ``other``, which must start where this one ends.
-
-        ``other``'s first sample (a duplicate of this one's last) is dropped and its
-        times are shifted so the result stays on the same ``dt`` grid.
-        """
-        if np.abs(other.q[0] - self.q[-1]).max() > 1e-3:
-            raise ValueError("other trajectory does not start at this trajectory's last configuration")
-        return JointTrajectory(
-            q=np.concatenate([self.q, other.q[1:]]),
-            qd=np.concatenate([self.qd, other.qd[1:]]),
-            t=np.concatenate([self.t, self.t[-1] + other.t[1:] - other.t[0]]),
-        )
-
-
-@dataclass
-class PlanResult:
-    """Outcome of a planning call.
-
-    ``trajectory`` is set iff ``success``; otherwise ``failure_reason`` is one of
-    ``FAILURE_REASONS``. ``goal_q`` ``(7,)`` is the reached configuration,
-    ``waypoints`` ``(K, 7)`` the simplified geometric path, ``planning_time`` in s.
-    """
-
-    success: bool
-    trajectory: JointTrajectory | None = None
-    failure_reason: FailureReason | None = None
-    message: str = ""
-    goal_q: np.ndarray | None = None
-    waypoints: np.ndarray | None = None
-    planning_time: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.success != (self.trajectory is not None):
-            raise ValueError("a PlanResult has a trajectory iff it succeeded")
-        if not self.success and self.failure_reason not in FAILURE_REASONS:
-            raise ValueError(f"failure_reason must be one of {FAILURE_REASONS}, got {self.failure_reason!r}")
+from rtv3_maniskill.robot.time_parametrization import densify, time_optimal_trajectory
+from rtv3_maniskill.robot.trajectory import JointTrajectory, PlanResult
 
 
 @dataclass
@@ -144,87 +68,6 @@ class IKSolutions:
     num_in_collision: int = 0
 
 
-@dataclass(frozen=True)
-class PlannerConfig:
-    """Planner settings (SI units).
-
-    Speeds: ``velocity_scale``/``acceleration_scale`` scale the Panda's joint limits
-    (URDF velocities, datasheet accelerations) and ``max_tcp_speed`` caps the TCP's
-    linear speed along the path, so demonstrations move at a teleoperation-like pace
-    (~0.1-0.2 m/s) rather than at the robot's top speed.
-    """
-
-    control_dt: float = 0.05
-    """Output sample period (ManiSkill's 20 Hz control)."""
-    velocity_scale: float = 0.4
-    acceleration_scale: float = 0.3
-    max_tcp_speed: float = 0.2
-    """Cap on the TCP's linear speed (m/s) for ``plan_to_pose``."""
-    collision_resolution: float = 0.005
-    """Joint-space step (rad) at which motions are collision-checked."""
-    margins: CollisionMargins = CollisionMargins(objects=0.01, table=0.005, self=0.0)
-    """Security margins for free-space motion (``plan_to_pose``)."""
-    approach_margins: CollisionMargins = CollisionMargins(objects=0.003, table=0.002, self=0.0)
-    """Security margins for the straight-line approach (the fingers come close)."""
-    joint_limit_margin: float = 0.02
-    """rad kept from every joint limit by IK goals and the planner's state space."""
-    ik_attempts: int = 40
-    """IK seeds tried per target (the seed configuration first, then random ones)."""
-    num_goal_solutions: int = 4
-    """Diverse IK goal configurations handed to OMPL as goal states."""
-    ik_min_separation: float = 0.2
-    """Two IK solutions count as distinct when they differ by more than this (rad, L-inf)."""
-    ik_pos_tol: float = 1e-4
-    ik_rot_tol: float = 1e-3
-    simplify_time: float = 0.5
-    """Time budget (s) for OMPL's path simplification."""
-    approach_speed: float = 0.05
-    """Peak TCP speed (m/s) of the straight-line approach."""
-    approach_angular_speed: float = 0.5
-    """Peak TCP angular speed (rad/s) of the straight-line approach."""
-    max_joint_jump: float = 0.1
-    """Largest joint change (rad) allowed between consecutive straight-line samples."""
-    spline_spacing: float = 0.1
-    """Joint-space spacing (rad) of the points the time-parameterization spline passes through."""
-
-
-class _TcpSpeedConstraint(toppra.constraint.LinearConstraint):
-    """TOPP-RA constraint ``|v_tcp(s)| = |J_v(q(s)) q'(s)| sdot <= v_max``.
-
-    Expressed as a bound on ``x = sdot^2`` at every grid point.
-    """
-
-    def __init__(self, kinematics: PandaKinematics, v_max: float) -> None:
-        super().__init__()
-        self.kin = kinematics
-        self.v_max = v_max
-        self.dof = DOF
-
-    def compute_constraint_params(self, path, gridpoints):
-        qs = path(gridpoints)
-        dqs = path(gridpoints, 1)
-        xbound = np.zeros((len(gridpoints), 2))
-        for i, (q, dq) in enumerate(zip(qs, dqs)):
-            speed_per_s = np.linalg.norm(self.kin.tcp_linear_jacobian_world(q) @ dq)
-            xbound[i, 1] = (self.v_max / speed_per_s) ** 2 if speed_per_s > 1e-9 else 1e12
-        return None, None, None, None, None, None, xbound
-
-
-def _seed_ompl(seed: int) -> None:
-    """Seed OMPL's RNG seed generator (``ompl.util.RNG.setSeed``).
-
-    OMPL logs an error when the seed changes after random numbers were drawn; the
-    reseed still applies to every RNG created afterwards, and a plan creates fresh
-    planners and samplers, so planning is reproducible per seed. The log is muted.
-    """
-    level = ou.getLogLevel()
-    ou.setLogLevel(ou.LogLevel.LOG_NONE)
-    try:
-        ou.RNG.setSeed(int(seed) % (2**31 - 2) + 1)  # OMPL rejects 0
-    finally:
-        ou.setLogLevel(level)
-
-
 class PandaPlanner:
     """Collision-aware motion planner for ManiSkill's Panda in one scene.
 
@@ -236,9 +79,10 @@ class PandaPlanner:
     def __init__(
         self,
         scene: SceneGeometry | None = None,
-        config: PlannerConfig = PlannerConfig(),
+        config: PlannerConfig | None = None,
         kinematics: PandaKinematics | None = None,
     ) -> None:
+        config = config if config is not None else PlannerConfig()
         self.config = config
         self.kin = kinematics if kinematics is not None else PandaKinematics()
         self.scene = scene
@@ -248,12 +92,6 @@ class PandaPlanner:
         self.acceleration_limits = PANDA_ACCELERATION_LIMITS * config.acceleration_scale
 
     # ------------------------------------------------------------------ scene / checks
-
-    def set_scene(self, scene: SceneGeometry | None) -> None:
-        """Replace the obstacles (the robot model is kept)."""
-        self.scene = scene
-        self.world = PandaCollisionWorld(self.kin, scene, self.config.margins)
-        self._active_margins = self.config.margins
 
     def _use_margins(self, margins: CollisionMargins) -> None:
         if margins != self._active_margins:
@@ -403,7 +241,11 @@ class PandaPlanner:
             return fail("ik_failed", f"no IK solution after {self.config.ik_attempts} attempts")
         goals = np.stack(ik.solutions)
 
-        path, status = self._rrt_connect(q_start, goals, timeout - (time.perf_counter() - t0), seed, ignore)
+        self.world.set_ignored(ignore)
+        margin = self.config.joint_limit_margin
+        path, status = rrt_connect(q_start, goals, timeout - (time.perf_counter() - t0), seed,
+                                   self.kin.lower + margin, self.kin.upper - margin, self.world.check_fast,
+                                   self.config.collision_resolution, self.config.simplify_time)
         if path is None:
             if status == "timeout":
                 return fail("timeout", f"RRTConnect found no path within {timeout:.2f} s")
@@ -420,54 +262,6 @@ class PandaPlanner:
             message=f"{len(path)} waypoints, {traj.duration:.2f} s",
         )
 
-    def _rrt_connect(self, q_start, goals, time_left, seed, ignore) -> tuple[np.ndarray | None, str]:
-        """OMPL RRTConnect + simplification; returns ``(path (K, 7) or None, status)``."""
-        if time_left <= 0:
-            return None, "timeout"
-        _seed_ompl(seed)
-        space = ob.RealVectorStateSpace(DOF)
-        bounds = ob.RealVectorBounds(DOF)
-        for i in range(DOF):
-            bounds.setLow(i, float(self.kin.lower[i] + self.config.joint_limit_margin))
-            bounds.setHigh(i, float(self.kin.upper[i] - self.config.joint_limit_margin))
-        space.setBounds(bounds)
-        ss = og.SimpleSetup(space)
-        world = self.world
-        world.set_ignored(ignore)
-        buf = np.zeros(DOF)
-
-        def valid(state) -> bool:
-            for i in range(DOF):
-                buf[i] = state[i]
-            return world.check_fast(buf)
-
-        ss.setStateValidityChecker(valid)
-        si = ss.getSpaceInformation()
-        si.setStateValidityCheckingResolution(self.config.collision_resolution / space.getMaximumExtent())
-
-        def to_state(q):
-            s = space.allocState()
-            for i in range(DOF):
-                s[i] = float(q[i])
-            return s
-
-        ss.setStartState(to_state(q_start))
-        goal = ob.GoalStates(si)
-        for g in goals:
-            goal.addState(to_state(g))
-        ss.setGoal(goal)
-        ss.setPlanner(og.RRTConnect(si))
-        status = ss.solve(float(time_left))
-        name = str(status)
-        if not ss.haveExactSolutionPath():
-            return None, "timeout" if status.getStatus() == ob.PlannerStatus.TIMEOUT else name
-        ss.simplifySolution(self.config.simplify_time)
-        path = ss.getSolutionPath()
-        out = np.array([[path.getState(k)[i] for i in range(DOF)] for k in range(path.getStateCount())])
-        # Drop repeated states (zero-length segments break the arc-length spline).
-        keep = [0] + [k for k in range(1, len(out)) if np.linalg.norm(out[k] - out[k - 1]) > 1e-9]
-        return out[keep], name
-
     def _time_parameterize(self, path: np.ndarray, ignore) -> JointTrajectory | None:
         """TOPP-RA on a cubic spline through the (densified) path, then a dense collision check.
 
@@ -477,39 +271,14 @@ class PandaPlanner:
         """
         spacing = self.config.spline_spacing
         for _ in range(4):
-            dense = _densify(path, spacing)
-            traj = self._toppra(dense)
+            dense = densify(path, spacing)
+            cfg = self.config
+            traj = time_optimal_trajectory(dense, self.kin, self.velocity_limits, self.acceleration_limits,
+                                           cfg.max_tcp_speed, cfg.control_dt, cfg.collision_resolution)
             if traj is not None and self.motion_collision_free(traj[1], ignore):
                 return traj[0]
             spacing /= 2
         return None
-
-    def _toppra(self, dense: np.ndarray) -> tuple[JointTrajectory, np.ndarray] | None:
-        """Time-optimal parameterization of a spline through ``dense (K, 7)``.
-
-        Returns the 20 Hz trajectory and ``(M, 7)`` samples of the continuous
-        trajectory fine enough for collision checking (joint step <=
-        ``collision_resolution`` between samples at the velocity limits).
-        """
-        if len(dense) < 2:
-            return _rest_trajectory(dense[0], self.config.control_dt), dense[:1]
-        ss_wp = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
-        spline = toppra.SplineInterpolator(ss_wp, dense, bc_type="natural")
-        # 0.5 % head-room: TOPP-RA's discretized solution may exceed a bound by ~0.02 %.
-        constraints = [
-            toppra.constraint.JointVelocityConstraint(self.velocity_limits * 0.995),
-            toppra.constraint.JointAccelerationConstraint(self.acceleration_limits * 0.995),
-            _TcpSpeedConstraint(self.kin, self.config.max_tcp_speed * 0.995),
-        ]
-        n_grid = max(100, int(ss_wp[-1] / 0.01))
-        grid = np.linspace(0.0, ss_wp[-1], n_grid + 1)
-        algo = toppra.algorithm.TOPPRA(constraints, spline, gridpoints=grid, parametrizer="ParametrizeConstAccel")
-        timed = algo.compute_trajectory(0.0, 0.0)
-        if timed is None:
-            return None
-        fine_dt = self.config.collision_resolution / float(self.velocity_limits.max())
-        fine_t = np.append(np.arange(0.0, timed.duration, fine_dt), timed.duration)
-        return _resample(timed, self.config.control_dt, dense[0], dense[-1]), np.asarray(timed(fine_t))
 
     # ------------------------------------------------------------------ straight-line approach
 
@@ -585,34 +354,3 @@ class PandaPlanner:
                               planning_time=time.perf_counter() - t0)
         finally:
             self._use_margins(cfg.margins)
-
-
-# ---------------------------------------------------------------------- helpers
-
-
-def _densify(path: np.ndarray, spacing: float) -> np.ndarray:
-    """Insert points so consecutive points of ``path (K, 7)`` are at most ``spacing`` apart (L2)."""
-    out = [path[0]]
-    for a, b in zip(path[:-1], path[1:]):
-        n = max(1, math.ceil(np.linalg.norm(b - a) / spacing))
-        for k in range(1, n + 1):
-            out.append(a + (b - a) * (k / n))
-    return np.stack(out)
-
-
-def _resample(timed, dt: float, q_first: np.ndarray, q_last: np.ndarray) -> JointTrajectory:
-    """Sample a toppra trajectory every ``dt`` s; the last sample is the goal at rest."""
-    duration = float(timed.duration)
-    n = max(1, math.ceil(duration / dt - 1e-9))
-    t = np.arange(n + 1) * dt
-    ts = np.minimum(t, duration)
-    q = np.asarray(timed(ts))
-    qd = np.asarray(timed(ts, 1))
-    q[0], qd[0] = q_first, 0.0
-    q[-1], qd[-1] = q_last, 0.0
-    return JointTrajectory(q=q, qd=qd, t=t)
-
-
-def _rest_trajectory(q: np.ndarray, dt: float) -> JointTrajectory:
-    return JointTrajectory(q=np.stack([q, q]), qd=np.zeros((2, DOF)), t=np.array([0.0, dt]))
-
