@@ -11,7 +11,7 @@
 #      simulated users (noisy, laggy, mode-switching, single-DoF, low-DoF) drive through Direct
 #      teleoperation; at visited states the planner re-plans to the target's pre-grasp, and the
 #      stored history is the user's own motion, so the prior learns to read a goal from it;
-#   3. the two datasets merged with LeRobot's merge_datasets (scripts/merge_datasets.py);
+#   3. the two datasets merged with LeRobot's merge_datasets (rtv3 merge);
 #   4. lerobot-train fine-tunes the starting weights on the merged data at learning rate 1e-3 (free-running decoder,
 #      rotation conditioned on a sampled translation, twist noise on the history), STEPS steps,
 #      checkpoints every SAVE_FREQ steps; resume an interrupted run with
@@ -72,7 +72,7 @@ fi
     --drivers direct:noisy,direct:laggy,direct:mode_switching,direct:single_dof,direct:low_dof \
     --targets-per-scene 4 --relabels-per-rollout 3 --workers 2
 [[ -f data/train_v2_dagger/meta/info.json ]] || \
-  .venv/bin/python scripts/merge_datasets.py data/train_v2 data/dagger_direct --output data/train_v2_dagger
+  .venv/bin/rtv3 merge data/train_v2 data/dagger_direct --output data/train_v2_dagger
 
 # One fine-tune, skipped when OUTPUT already has checkpoints (resume an interrupted one with
 # lerobot-train --config_path=OUTPUT/checkpoints/last/pretrained_model/train_config.json --resume=true).
@@ -81,7 +81,7 @@ fine_tune() {  # INIT DATASET OUTPUT STEPS SAVE_FREQ [extra lerobot-train flags]
   shift 5
   [[ -d $output/checkpoints ]] && return 0
   .venv/bin/lerobot-train --policy.type=rtv3 --policy.init_weights_from="$init" \
-      --policy.point_stem_poolings=0 --policy.teacher_forcing=false --policy.rotation_conditioning=sampled \
+      --policy.point_stem_poolings=0 --policy.rotation_conditioning=sampled \
       --policy.twist_noise_linear=0.05 --policy.twist_noise_angular=0.25 "$@" \
       --dataset.repo_id=local/rtv3_grasp_clutter --dataset.root="$dataset" \
       --policy.push_to_hub=false --policy.device=cpu --wandb.enable=false --batch_size="$BATCH" \
@@ -100,10 +100,9 @@ previous=outputs/train_v2_lowlr/checkpoints/000500/pretrained_model
 .venv/bin/rtv3 dagger --policy.path "$previous" --output data/dagger_prior --num-scenes "$DAGGER_SCENES" --seed 6 \
     --drivers prior --targets-per-scene 4 --relabels-per-rollout 3 --workers 2
 [[ -f data/train_v3/meta/info.json ]] || \
-  .venv/bin/python scripts/merge_datasets.py data/train_v3_base data/dagger_prior --output data/train_v3
+  .venv/bin/rtv3 merge data/train_v3_base data/dagger_prior --output data/train_v3
 
-resampled=(--policy.optimizer_lr=0.0003 --policy.history_rotation_resample_prob=0.5
-           --policy.history_rotation_resample_mode=rate)
+resampled=(--policy.optimizer_lr=0.0003 --policy.history_rotation_resample_prob=0.5)
 fine_tune "$previous" data/train_v3 outputs/train_v3 1000 250 "${resampled[@]}"
 fine_tune outputs/train_v3/checkpoints/001000/pretrained_model data/train_v3 outputs/train_v3_long 1500 250 \
     "${resampled[@]}"
@@ -115,7 +114,7 @@ previous=outputs/train_v3_long/checkpoints/001000/pretrained_model
     --drivers prior,rtv3:single_dof,rtv3:mode_switching,prior --targets-per-scene 4 --relabels-per-rollout 3 \
     --workers 2
 [[ -f data/train_s3_dagger/meta/info.json ]] || \
-  .venv/bin/python scripts/merge_datasets.py data/train_s3 data/dagger_s3 --output data/train_s3_dagger
+  .venv/bin/rtv3 merge data/train_s3 data/dagger_s3 --output data/train_s3_dagger
 fine_tune "$previous" data/train_s3_dagger outputs/train_s3 2000 500 "${resampled[@]}"
 
 # A DAgger round of $previous aimed at its failures (steps 9 and 10): 200 scenes, 8 targets each, one
@@ -128,7 +127,7 @@ failure_round() {  # OUTPUT SEED DRIVERS
 previous=outputs/train_s3/checkpoints/$CKPT_STEP/pretrained_model
 failure_round data/dagger_f10 10 prior,rtv3:single_dof,prior,rtv3:noisy
 [[ -f data/train_f10/meta/info.json ]] || \
-  .venv/bin/python scripts/merge_datasets.py data/train_s3_dagger data/dagger_f10 --output data/train_f10
+  .venv/bin/rtv3 merge data/train_s3_dagger data/dagger_f10 --output data/train_f10
 annealed=(--policy.optimizer_lr_decay=0.997 --policy.optimizer_min_lr=0.00001)
 fine_tune "$previous" data/train_f10 outputs/train_f10_anneal 1000 500 "${resampled[@]}" "${annealed[@]}"
 
@@ -136,7 +135,7 @@ previous=outputs/train_f10_anneal/checkpoints/001000/pretrained_model
 failure_round data/dagger_f11 11 prior,rtv3:single_dof,prior,rtv3:noisy
 failure_round data/dagger_f12 12 rtv3:single_dof,rtv3:low_dof,rtv3:single_dof,prior
 [[ -f data/train_f13/meta/info.json ]] || \
-  .venv/bin/python scripts/merge_datasets.py data/train_f10 data/dagger_f11 data/dagger_f12 --output data/train_f13
+  .venv/bin/rtv3 merge data/train_f10 data/dagger_f11 data/dagger_f12 --output data/train_f13
 fine_tune "$previous" data/train_f13 outputs/train_f13_anneal 1500 500 "${resampled[@]}" "${annealed[@]}"
 
 ckpt=outputs/train_f13_anneal/checkpoints/001500/pretrained_model

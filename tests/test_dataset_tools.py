@@ -1,5 +1,5 @@
 """LeRobot's own dataset tools (``lerobot.datasets.dataset_tools``, ``lerobot-edit-dataset``)
-on an `rtv3 generate` dataset: delete_episodes, split, merge and modify_tasks.
+on an `rtv3 generate` dataset: delete_episodes, split, merge and modify_tasks; and `rtv3 merge`.
 
 LeRobot 0.4.4 copies data through pandas, which cannot handle 2-D (``Array2D``) columns; the
 dataset stores its 2-D features flat (``features.STORED_FLAT``) so that these tools work.
@@ -112,13 +112,13 @@ def test_lerobot_edit_dataset_cli_delete_episodes(generated, tmp_path):
     _check_loads("local/fewer", root / "local" / "fewer", [episodes[1], *episodes[3:]])
 
 
-def test_merging_a_merged_dataset_keeps_every_episode(generated, tmp_path):
+def test_rtv3_merge_of_a_merged_dataset_keeps_every_episode(generated, tmp_path, capsys):
     """A merge whose episode metadata spilled into a second file (LeRobot 0.4.4 labels both files 0)
-    merges again with every episode, in order, through ``rtv3_maniskill.datagen.merge``."""
+    merges again with every episode, in order, through ``rtv3 merge``."""
     import pyarrow.parquet as pq
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from rtv3_maniskill.datagen.merge import merge, repair_episode_file_labels
+    from rtv3_maniskill.datagen.merge import repair_episode_file_labels
 
     spilled = tmp_path / "spilled"
     shutil.copytree(generated, spilled, ignore=shutil.ignore_patterns("rtv3_staging"))
@@ -130,10 +130,24 @@ def test_merging_a_merged_dataset_keeps_every_episode(generated, tmp_path):
     episodes = [e[:2] for e in _episodes(LeRobotDataset(REPO_ID, root=generated))]
     _check_loads(REPO_ID, spilled, episodes)  # the spilled dataset itself still loads whole
 
-    merge([spilled, generated], tmp_path / "again")
+    assert main(["merge", str(spilled), str(generated), "--output", str(tmp_path / "again")]) == 0
+    assert f"{2 * len(episodes)} episodes" in capsys.readouterr().out
     assert repair_episode_file_labels(spilled) == 0  # merge mended its source first
     _check_loads(REPO_ID, tmp_path / "again", episodes + episodes)
-    with pytest.raises(FileExistsError, match="exists"):
-        merge([generated], tmp_path / "again")
-    with pytest.raises(FileNotFoundError, match="no meta/info.json"):
-        merge([tmp_path / "nowhere"], tmp_path / "third")
+
+
+@pytest.mark.parametrize("case, message", [
+    ("missing", "error: no such dataset folder: {tmp}/nowhere"),
+    ("not_a_dataset", "error: not a LeRobot dataset (no meta/info.json): {tmp}/empty"),
+    ("output_exists", "error: {tmp}/out exists; remove it or choose another folder"),
+])
+def test_rtv3_merge_refuses_bad_folders_with_one_error_line(generated, tmp_path, case, message):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "out").mkdir()
+    sources = {"missing": [tmp_path / "nowhere", generated], "not_a_dataset": [tmp_path / "empty"],
+               "output_exists": [generated]}[case]
+    output = tmp_path / ("out" if case == "output_exists" else "merged")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["merge", *map(str, sources), "--output", str(output)])
+    assert exit_info.value.code == message.format(tmp=tmp_path)
+    assert not (tmp_path / "merged").exists()

@@ -13,6 +13,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "scene": ("scene", "render a random clutter scene; save an image with its point cloud and grasp candidates"),
     "generate": ("generate", "expert demonstrations from the motion planner -> LeRobot v3 dataset (resumable)"),
     "dagger": ("dagger", "DAgger round: roll out the prior / users, re-plan from visited states -> LeRobot dataset"),
+    "merge": ("merge", "merge LeRobot datasets (demonstrations, DAgger rounds) into one training set, in order"),
     "visualize-episode": ("visualize_episode",
                           "plot one dataset episode: scene, grasps, target and executed trajectory"),
     "evaluate": ("evaluate",
