@@ -12,8 +12,10 @@ from scipy.stats import chi2, multivariate_normal
 from rtv3_maniskill import features
 from rtv3_maniskill.shared_control import gaussians, mixture_entropy, mode_search, ood_gate, posterior, user_covariance
 from rtv3_maniskill.shared_control.autonomy import surface_distance
+from rtv3_maniskill.shared_control.command_axes import observed_axes
 from rtv3_maniskill.shared_control.config import SharedControlConfig
 from rtv3_maniskill.shared_control.shared_controller import SharedController
+from rtv3_maniskill.shared_control.twist_utils import clamp_twist_speed
 from rtv3_maniskill.twist_mixture import TwistMixture
 
 DT = torch.float64
@@ -357,7 +359,7 @@ def test_shared_control_config_rejects_unknown_ood_gate_options():
     with pytest.raises(ValueError, match="ood_dofs must be one of"):
         SharedControlConfig(ood_dofs="all")
     with pytest.raises(ValueError, match="uncommanded_axes must be one of"):
-        SharedControlConfig(uncommanded_axes="ignore")
+        SharedControlConfig(uncommanded_axes="zero")
 
 
 def test_user_covariance_follows_command_spread_but_not_below_floor():
@@ -549,83 +551,44 @@ def test_prior_covariance_scale_gives_the_users_command_more_weight():
         SharedControlConfig(prior_covariance_scale=0.0)
 
 
-def shared_action_after(axes: str, obs: dict, earlier: tuple[torch.Tensor, ...], command: torch.Tensor) -> torch.Tensor:
-    """The shared ``(6,)`` action for ``command`` under ``uncommanded_axes=axes`` after the ``earlier``
-    commands (same observation; two-class hand-built prior, fixed user covariance, no belief memory)."""
-    ctrl = SharedController(HandBuiltPrior(weights=(0.7, 0.3)), SharedControlConfig(
-        uncommanded_axes=axes, adapt_user_covariance=False, belief_memory=0.0))
-    for earlier_command in earlier:
-        ctrl.step(obs, earlier_command)
-    action = ctrl.step(obs, command)[0]
-    assert ctrl.last_diagnostics.mode == "shared"
-    return action
+def test_observed_axes_hold_the_axes_the_user_has_used():
+    """``"missing"``: every zero axis is missing. ``"missing_unused"``: far from the scene a used
+    axis is held still and an unused one is the prior's; near it, every axis of a used kind is held."""
+    t, f = True, False
+    commanded = torch.tensor([[t, f, f, f, f, f]])  # pushes along x now
+    used = torch.tensor([[t, f, f, t, f, f]])  # has pushed along x and rolled about x before
+    far, near = torch.tensor([False]), torch.tensor([True])
+    for where in (far, near):
+        assert torch.equal(observed_axes("missing", commanded, used, where), commanded)
+    assert observed_axes("missing_unused", commanded, used, far).tolist() == [[t, f, f, t, f, f]]
+    assert observed_axes("missing_unused", commanded, used, near).tolist() == [[t] * 6]
+    translation_only = torch.tensor([[t, f, f, f, f, f]])  # rotation never commanded: the prior's near the scene too
+    assert observed_axes("missing_unused", commanded, translation_only, near).tolist() == [[t, t, t, f, f, f]]
+    with pytest.raises(ValueError, match="uncommanded_axes must be one of"):
+        observed_axes("zero", commanded, used, far)
 
 
-def test_missing_far_leaves_uncommanded_axes_to_the_prior_only_away_from_the_scene():
-    """``uncommanded_axes="missing_far"``: a one-axis command's other axes are missing (the prior
-    fills them) farther than the autonomy cutoff from the scene; within it an axis the user has
-    commanded before means "hold still", and one the device never gave stays missing."""
+def test_shared_action_fuses_the_observed_axes_of_the_command():
+    """After a roll about x, a push along x alone: the controller's action is the mode of the fusion
+    on the axes :func:`observed_axes` gives, so the rotation about z the user has never commanded is
+    the prior's far from the scene and held still near it."""
     user = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.0]])
-    turn = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.54]])  # class 1's own twist: in distribution
+    roll = torch.tensor([[0.27, 0.0, 0.0, 0.3, 0.0, 0.0]])
     far = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.0),))
     near = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.25),))
-
-    def act(axes: str, obs: dict, earlier: tuple[torch.Tensor, ...] = ()) -> torch.Tensor:
-        return shared_action_after(axes, obs, earlier, user)
-
-    torch.testing.assert_close(act("missing_far", far, (turn,)), act("missing", far))
-    torch.testing.assert_close(act("missing_far", near), act("missing", near))  # rotation not on the device
-    held = act("missing_far", near, (turn,))
-    torch.testing.assert_close(held, act("zero", near))
-    # the rotation the user does not command now: filled in far away, held back near the scene
-    assert act("missing_far", far, (turn,))[5] > 2 * held[5].abs()
-
-
-def test_missing_far_group_holds_every_axis_of_a_kind_the_user_has_used_near_the_scene():
-    """``uncommanded_axes="missing_far_group"``: once the user has turned about one axis, rotation is
-    on the device, so near the scene the prior fills no rotation axis (``missing_far`` still fills
-    the two the user has not touched); far from the scene both leave them to the prior."""
-    user = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.0]])
-    roll = torch.tensor([[0.27, 0.0, 0.0, 0.3, 0.0, 0.0]])  # rotation about x only
-    far = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.0),))
-    near = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.25),))
-
-    def act(axes: str, obs: dict) -> torch.Tensor:
-        return shared_action_after(axes, obs, (roll,), user)
-
-    torch.testing.assert_close(act("missing_far_group", far), act("missing_far", far))
-    grouped, per_axis = act("missing_far_group", near), act("missing_far", near)
-    torch.testing.assert_close(grouped, act("zero", near))
-    assert per_axis[5] > 5 * grouped[5].abs()  # class 1 turns about z: held back once rotation was used
-
-
-def test_missing_unused_holds_used_axes_far_from_the_scene_too():
-    """``uncommanded_axes="missing_unused_group"``: the prior fills only a kind the user has never
-    commanded. After a roll, rotation is the user's everywhere (the prior does not keep turning the hand
-    far from the scene while the user drives one translation axis); before it, it is filled as ``missing``."""
-    user = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.0]])
-    roll = torch.tensor([[0.27, 0.0, 0.0, 0.3, 0.0, 0.0]])  # rotation about x only
-    far = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.0),))
-    near = make_observation(ee=(0.0, 0.0, 0.3), cloud_points=((0.0, 0.0, 0.25),))
-
-    def act(axes: str, obs: dict, earlier: tuple[torch.Tensor, ...] = (roll,)) -> torch.Tensor:
-        return shared_action_after(axes, obs, earlier, user)
-
-    for obs in (far, near):
-        torch.testing.assert_close(act("missing_unused_group", obs), act("zero", obs, ()))
-        torch.testing.assert_close(act("missing_unused_group", obs, ()), act("missing", obs, ()))
-    filled = act("missing_far_group", far)
-    assert filled[5] > 5 * act("missing_unused_group", far)[5].abs()  # class 1 turns about z
-    # "missing_unused": per axis far from the scene (z, never turned about, stays the prior's), by kind near it
-    assert act("missing_unused", far)[5] > 5 * act("missing_unused_group", far)[5].abs()
-    torch.testing.assert_close(act("missing_unused", near), act("zero", near, ()))
-    # a user who pushed along x and now pushes along z alone: far from the scene the prior no longer
-    # continues x under either rule, while missing_far_group leaves it to the prior there
-    push_z = torch.tensor([[0.0, 0.0, 0.1, 0.0, 0.0, 0.0]])
-    ctrl_x = {axes: shared_action_after(axes, far, (user,), push_z)[0]
-              for axes in ("missing_far_group", "missing_unused", "missing_unused_group")}
-    held = max(ctrl_x["missing_unused"].abs(), ctrl_x["missing_unused_group"].abs())
-    assert ctrl_x["missing_far_group"].abs() > 5 * held
+    config = SharedControlConfig(user_cov_decay=1.0, belief_memory=0.0, goal_belief_margin=None)  # S_u fixed
+    mixture = make_two_class_mixture((0.7, 0.3)).scaled(config.prior_covariance_scale)
+    s_u, g_u = user_covs()
+    actions = {}
+    for name, obs, observed in (("far", far, [[1, 0, 0, 1, 0, 0]]), ("near", near, [[1] * 6])):
+        ctrl = SharedController(HandBuiltPrior(weights=(0.7, 0.3)), config)
+        ctrl.step(obs, roll)
+        actions[name] = ctrl.step(obs, user)[0]
+        assert ctrl.last_diagnostics.mode == "shared"
+        fused = posterior.fuse_user_command(mixture, user, s_u, g_u, observed=torch.tensor(observed, dtype=torch.bool))
+        expected = clamp_twist_speed(mode_search.mixture_mode(fused), config.max_linear_speed, config.max_angular_speed)
+        torch.testing.assert_close(actions[name], expected[0].float(), atol=1e-5, rtol=1e-5)
+    assert actions["far"][5] > 5 * actions["near"][5].abs()  # class 1 turns about z (omega_z = 2 v_x)
     assert SharedControlConfig().uncommanded_axes == "missing_unused"
 
 

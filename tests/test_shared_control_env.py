@@ -383,9 +383,10 @@ def test_benchmark_refuses_to_resume_with_other_shared_control_settings(tmp_path
     ckpt, default = _started_rtv3_benchmark(tmp_path, b"weights")
     assert default.fingerprint(ckpt)["shared_control"]["ood_covariance"] == "predictive"  # the tuned fusion
     paper = BenchmarkConfig(output=default.output, scenes=1, methods=["rtv3"], fusion="paper",
-                            shared_control={"uncommanded_axes": "zero"})
+                            shared_control={"uncommanded_axes": "missing_unused"})
     settings = paper.shared_control_config(0.3, 1.2)
-    assert (settings.ood_covariance, settings.belief_memory, settings.uncommanded_axes) == ("class", 0.0, "zero")
+    assert ((settings.ood_covariance, settings.belief_memory, settings.uncommanded_axes)
+            == ("class", 0.0, "missing_unused"))
     with pytest.raises(BenchmarkError, match="shared_control"):
         results_store(paper.output, paper.fingerprint(ckpt))
     with pytest.raises(BenchmarkError, match="bad shared_control settings"):

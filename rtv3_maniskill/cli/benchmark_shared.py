@@ -71,14 +71,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ood-dofs", choices=["twist", "translation"], default=None,
                         help="RT-V3 OOD gate on the whole twist (default) or on the translation only "
                              "(docs/PAPER_DETAILS.md)")
-    parser.add_argument("--uncommanded-axes", choices=["missing", "zero", "missing_far", "missing_far_group",
-                                                      "missing_unused", "missing_unused_group"], default=None,
-                        help="zero axes of a user command: missing (the prior fills them in), observations of "
-                             "zero velocity (zero, the paper's reading), or missing only farther than the autonomy "
-                             "cutoff from the scene and zero nearer for an axis the user has used (missing_far) or "
-                             "an axis of a kind, translation or rotation, the user has used (missing_far_group), and "
-                             "besides that zero everywhere for an axis (missing_unused, tuned) or a kind "
-                             "(missing_unused_group) the user has used")
     parser.add_argument("--prior-covariance-scale", type=float, default=None,
                         help="factor on the prior's step-0 covariances before the gate and the fusion (tuned 100, "
                              "paper 1); larger gives the user's command more weight against an overconfident prior")
@@ -115,7 +107,7 @@ def shared_control_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """The ``SharedControlConfig`` fields the command line sets (``off`` -> None), the others left to the preset."""
     return {
         key: (None if value == "off" else value)
-        for key in ("ood_alpha", "ood_covariance", "ood_dofs", "uncommanded_axes", "prior_covariance_scale",
+        for key in ("ood_alpha", "ood_covariance", "ood_dofs", "prior_covariance_scale",
                     "goal_belief_margin")
         if (value := getattr(args, key, None)) is not None
     }

@@ -46,25 +46,13 @@ class SharedControlConfig:
     """What the OOD test looks at: ``"twist"`` (translation and rotation) or ``"translation"``
     (docs/PAPER_DETAILS.md); see :func:`ood_gate.is_out_of_distribution`."""
     uncommanded_axes: str = "missing_unused"
-    """How a zero axis of a user command (``|u_i| <= input_threshold``) of a command that is not
-    zero altogether is read: ``"missing"``, an axis the device does not give (a mode-switching
-    or single-axis user), so neither the fusion nor the OOD test uses it and the prior fills it
-    in; ``"zero"`` (the paper's and docs/PAPER_DETAILS.md's reading), an observation "hold still" on that axis;
-    ``"missing_far"``, "hold still" within ``autonomy_cutoff_distance`` of the scene if the user has
-    commanded that axis since ``reset()`` (it is on the device: there, filling it is autonomy near
-    clutter), missing otherwise (farther away, or an axis the device never gave, e.g. a
-    translation-only device's rotation); ``"missing_far_group"``, the same with the
-    device's axes known by kind: once the user has commanded any translation (rotation) axis, every
-    translation (rotation) axis is on the device, so near the scene the prior fills none of them
-    (a one-axis-at-a-time user no longer has the prior turn or push the hand about the axes it has
-    not reached yet); ``"missing_unused"`` (the default), that near the scene, and anywhere a zero on an axis the
-    user has commanded since ``reset()`` means "hold still" (the user has left that axis: the prior no
-    longer continues there the motion the user gave it), while axes never commanded stay the prior's
-    far from the scene; ``"missing_unused_group"``, the prior fills only the kinds the user has never
-    commanded since ``reset()``, anywhere: once the user has commanded any translation (rotation)
-    axis, a zero translation (rotation) axis means "hold still" far from the scene too (the prior
-    no longer continues, on the axis a one-axis-at-a-time user has just left, the motion the user
-    gave it)."""
+    """How a zero axis (``|u_i| <= input_threshold``) of a command that is not zero altogether is
+    read: ``"missing"``, an axis the device does not give, so neither the fusion nor the OOD test
+    uses it and the prior fills it in; ``"missing_unused"``, missing only while the user has never
+    commanded that axis and the EE is farther than ``autonomy_cutoff_distance`` from the scene,
+    "hold still" on an axis the user has commanded and then left, and near the scene on every
+    axis of a kind (translation or rotation) the user has commanded
+    (:mod:`~rtv3_maniskill.shared_control.command_axes`)."""
     user_trans_var: float = 0.03
     """Initial S_u diagonal ((m/s)^2)."""
     user_rot_var: float = 0.1
@@ -110,7 +98,7 @@ class SharedControlConfig:
         scene helps every simulated user and the shipped prior loses to Direct for none;
         ``"paper"`` is the paper's reading: the gate under the
         class covariance at alpha 0.85, no memory of earlier commands, the prior's covariances as
-        predicted (and a command's zero axes missing everywhere, as before ``"missing_far"``).
+        predicted and a command's zero axes missing everywhere.
         """
         if name not in FUSION_PRESETS:
             raise ValueError(f"unknown fusion preset {name!r}; known: {', '.join(FUSION_PRESETS)}")

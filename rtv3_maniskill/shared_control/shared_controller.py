@@ -86,7 +86,7 @@ class SharedController:
         self._batch_size: int | None = None
         self._ood_remaining = torch.zeros(0, dtype=torch.long)
         self._commanded_axes = torch.zeros(0, 6, dtype=torch.bool)
-        """``(B, 6)`` axes the user has commanded since ``reset()`` (the device's axes; ``missing_far*``)."""
+        """``(B, 6)`` axes the user has commanded since ``reset()`` (``uncommanded_axes``)."""
         self._user_cov: UserCovarianceEstimator | None = None
         self._class_belief = ClassBelief(self.config.belief_memory, EVIDENCE_FLOOR)
         self._goal_belief = self._make_goal_belief()
