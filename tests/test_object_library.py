@@ -11,17 +11,16 @@ import trimesh
 from scipy.spatial import ConvexHull
 
 import rtv3_maniskill  # noqa: F401  (registers the task)
-from rtv3_maniskill.tasks import object_library
-from rtv3_maniskill.tasks.object_library import (
+from rtv3_maniskill.tasks import convex_cache
+from rtv3_maniskill.tasks.object_library import MixedObjectSet, make_object_set
+from rtv3_maniskill.tasks.procedural_objects import ProceduralObjectSet
+from rtv3_maniskill.tasks.random_urdf_objects import (
     RANDOM_URDF_MAX_EXTENT,
     RANDOM_URDF_MAX_MIDDLE,
     RANDOM_URDF_MAX_PARTS,
     RANDOM_URDF_MAX_WIDTH,
     RANDOM_URDF_MIN_EXTENT,
-    MixedObjectSet,
-    ProceduralObjectSet,
     RandomUrdfObjectSet,
-    make_object_set,
 )
 
 pytest.importorskip("pybullet_data")
@@ -117,7 +116,7 @@ def _obj_text(meshes: list[trimesh.Trimesh], groups: bool) -> str:
 
 
 def test_non_convex_meshes_go_through_coacd_and_broken_ones_are_skipped(tmp_path, monkeypatch):
-    monkeypatch.setattr(object_library, "CACHE_DIR", tmp_path / "cache")
+    monkeypatch.setattr(convex_cache, "CACHE_DIR", tmp_path / "cache")
     folder = tmp_path / "objects"
     folder.mkdir()
     # An L of two boxes as two groups (two convex parts); a ring as one group (not convex). Units: cm.
@@ -171,7 +170,7 @@ def test_grasp_clutter_with_random_urdfs_is_seeded_and_has_grasps():
 def test_benchmark_shared_takes_the_object_source(tmp_path):
     import argparse
 
-    from rtv3_maniskill.benchmarks.shared_benchmark import BenchmarkConfig
+    from rtv3_maniskill.benchmarks.shared_config import BenchmarkConfig
     from rtv3_maniskill.cli.benchmark_shared import add_arguments
 
     parser = argparse.ArgumentParser()
@@ -183,5 +182,5 @@ def test_benchmark_shared_takes_the_object_source(tmp_path):
     assert scene_settings(parser.parse_args(["--preset", "paper"]))["object_source"] == "ycb"
     default = BenchmarkConfig(output=tmp_path, methods=["direct"], users=["noisy"])
     urdfs = BenchmarkConfig(output=tmp_path, methods=["direct"], users=["noisy"], object_source="random_urdfs")
-    assert "object_source" not in default.fingerprint(None), "runs made before the option still resume"
+    assert default.fingerprint(None)["object_source"] == "procedural"
     assert urdfs.fingerprint(None)["object_source"] == "random_urdfs"

@@ -23,7 +23,8 @@ from rtv3_maniskill.robot.scene_geometry import (
     ObjectGeometry,
     SceneGeometry,
 )
-from rtv3_maniskill.tasks.object_library import ObjectSet, convex_part_file
+from rtv3_maniskill.tasks.convex_cache import convex_part_file
+from rtv3_maniskill.tasks.object_library import ObjectSet
 
 SceneType = Literal["pile", "packed", "packed_ycb"]
 SCENE_TYPES = ("pile", "packed", "packed_ycb")
