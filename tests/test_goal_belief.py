@@ -94,7 +94,7 @@ class RecordingPrior(OraclePrior):
 def test_the_controller_hands_its_prior_the_candidates_the_belief_keeps(margin):
     prior = RecordingPrior()
     ctrl = SharedController(prior, SharedControlConfig(goal_belief_margin=margin, prior_covariance_scale=1.0,
-                                                       adapt_user_covariance=False))
+                                                       user_cov_decay=1.0))
     ctrl.reset()
     rng = np.random.default_rng(1)
     pose = START.clone()

@@ -59,7 +59,7 @@ def test_each_class_is_the_clipped_straight_twist_to_its_goal_and_its_nearer_twi
 def _drive(memory: float, steps: int = 40) -> torch.Tensor:
     """A user who aims at goal 1 with noisy but consistent commands; returns the class weights."""
     ctrl = SharedController(OraclePrior(GOALS), SharedControlConfig(
-        belief_memory=memory, ood_covariance="predictive", ood_alpha=0.99, adapt_user_covariance=False,
+        belief_memory=memory, ood_covariance="predictive", ood_alpha=0.99, user_cov_decay=1.0,
         max_linear_speed=0.3, max_angular_speed=1.2, prior_covariance_scale=1.0))  # the oracle's own covariances
     ctrl.reset()
     rng = np.random.default_rng(0)

@@ -113,10 +113,9 @@ def test_fuse_user_command_per_class_translation_then_conditioned_rotation():
     torch.testing.assert_close(fused.rot_cov, exp_gamma)
 
 
-@pytest.mark.parametrize("reweight_at", ["prior", "fused"])
-def test_prior_and_fused_in_one_call_equal_the_separate_functions(reweight_at):
+def test_prior_and_fused_in_one_call_equal_the_separate_functions():
     # The controller gets both mixtures from one rotation-head call; it must give exactly what
-    # prior_twist_mixture and fuse_user_command (with or without the prior passed in) give.
+    # prior_twist_mixture and fuse_user_command give.
     gen = torch.Generator().manual_seed(5)
     b, k = 3, 4
     rot = linear_rotation(torch.randn(k, 3, 3, generator=gen, dtype=DT),
@@ -126,29 +125,26 @@ def test_prior_and_fused_in_one_call_equal_the_separate_functions(reweight_at):
     user = torch.randn(b, 6, generator=gen, dtype=DT) * 0.1
     s_u, g_u = random_spd(gen, b), random_spd(gen, b)
     observed = torch.rand(b, 6, generator=gen) > 0.3
-    prior, fused = posterior.prior_and_fused_mixtures(mixture, user, s_u, g_u, reweight_at, observed=observed)
+    prior, fused = posterior.prior_and_fused_mixtures(mixture, user, s_u, g_u, observed=observed)
     expected_prior = posterior.prior_twist_mixture(mixture)
-    for expected in (posterior.fuse_user_command(mixture, user, s_u, g_u, reweight_at, observed=observed),
-                     posterior.fuse_user_command(mixture, user, s_u, g_u, reweight_at, prior=expected_prior,
-                                                 observed=observed)):
-        for name in ("log_weights", "trans_mean", "trans_cov", "rot_mean", "rot_cov", "trans_mahalanobis_sq",
-                     "rot_mahalanobis_sq", "trans_class_mahalanobis_sq", "rot_class_mahalanobis_sq"):
-            torch.testing.assert_close(getattr(fused, name), getattr(expected, name), msg=name)
+    expected = posterior.fuse_user_command(mixture, user, s_u, g_u, observed=observed)
+    for name in ("log_weights", "trans_mean", "trans_cov", "rot_mean", "rot_cov", "trans_mahalanobis_sq",
+                 "rot_mahalanobis_sq", "trans_class_mahalanobis_sq", "rot_class_mahalanobis_sq"):
+        torch.testing.assert_close(getattr(fused, name), getattr(expected, name), msg=name)
     for name in ("log_weights", "trans_mean", "trans_cov", "rot_mean", "rot_cov"):
         torch.testing.assert_close(getattr(prior, name), getattr(expected_prior, name), msg=name)
 
 
-@pytest.mark.parametrize("reweight_at", ["prior", "fused"])
-def test_class_weights_match_closed_form(reweight_at):
+def test_class_weights_match_closed_form():
+    """The class likelihood takes the rotation Gaussian at the prior translation mean ``mu_k``."""
     mixture = make_two_class_mixture(weights=(0.3, 0.7), dtype=DT)
     user = torch.tensor([[0.05, 0.02, -0.01, 0.1, 0.0, 0.05]], dtype=DT)
     s_u, g_u = user_covs()
-    fused = posterior.fuse_user_command(mixture, user, s_u, g_u, reweight_rotation_at=reweight_at)
+    fused = posterior.fuse_user_command(mixture, user, s_u, g_u)
     logs = []
     for k in range(2):
         mu, sigma = mixture.trans_mean[0, k].numpy(), mixture.trans_cov[0, k].numpy()
-        v_at = fused.trans_mean if reweight_at == "fused" else mixture.trans_mean
-        omega, gamma = mixture.rotation_given_translation(v_at)
+        omega, gamma = mixture.rotation_given_translation(mixture.trans_mean)
         logs.append(
             math.log(mixture.weights[0, k])
             + multivariate_normal(mu, sigma + s_u[0].numpy()).logpdf(user[0, :3].numpy())
@@ -196,8 +192,6 @@ def test_posterior_rejects_bad_inputs():
     bad.trans_mean[0, 0, 0] = math.nan
     with pytest.raises(ValueError, match="trans_mean"):
         posterior.fuse_user_command(bad, torch.zeros(1, 6), s_u, g_u)
-    with pytest.raises(ValueError, match="reweight_rotation_at"):
-        posterior.fuse_user_command(mixture, torch.zeros(1, 6), s_u, g_u, reweight_rotation_at="both")
 
 
 # --------------------------------------------------------------------------- mode, entropy
@@ -285,51 +279,45 @@ def test_ood_threshold_is_chi2_quantile_on_squared_mahalanobis():
     near = posterior.fuse_user_command(mixture, torch.tensor([[0.3, 0, 0, 0, 0, 0.6]]), s_u, g_u)
     far = posterior.fuse_user_command(mixture, torch.tensor([[0.0, 0.0, 0.6, 0, 0, 0]]), s_u, g_u)
     for covariance in ood_gate.OOD_COVARIANCES:
-        for dofs in ood_gate.OOD_DOFS:
-            assert not ood_gate.is_out_of_distribution(near, 0.85, covariance, dofs)[0]
-            assert ood_gate.is_out_of_distribution(far, 0.85, covariance, dofs)[0]
+        assert not ood_gate.is_out_of_distribution(near, 0.85, covariance)[0]
+        assert ood_gate.is_out_of_distribution(far, 0.85, covariance)[0]
     # (0.3^2 + 0.6^2) to the nearest class, under Sigma_k + S_u = 0.032 I and Sigma_k = 0.002 I
     assert far.trans_mahalanobis_sq.min() == pytest.approx((0.09 + 0.36) / 0.032, rel=1e-4)
     assert far.trans_class_mahalanobis_sq.min() == pytest.approx((0.09 + 0.36) / 0.002, rel=1e-4)
 
 
 def test_ood_gate_covariance_class_rejects_what_only_the_user_noise_would_explain():
-    """0.15 m/s off class 1's mean: 3.4 sigma of the class (OOD), 0.8 sigma of class + user noise."""
+    """0.15 m/s off class 1's mean, rotation on it: 3.4 sigma of the class (OOD), 0.8 sigma of class + user noise."""
     mixture = make_two_class_mixture()
     s_u, g_u = user_covs()
     fused = posterior.fuse_user_command(mixture, torch.tensor([[0.3, 0.15, 0, 0, 0, 0.6]]), s_u, g_u)
-    assert ood_gate.is_out_of_distribution(fused, 0.85, "class", "translation")[0]
-    assert not ood_gate.is_out_of_distribution(fused, 0.85, "predictive", "translation")[0]
+    assert ood_gate.is_out_of_distribution(fused, 0.85, "class")[0]
+    assert not ood_gate.is_out_of_distribution(fused, 0.85, "predictive")[0]
     with pytest.raises(ValueError, match="covariance must be one of"):
-        ood_gate.is_out_of_distribution(fused, 0.85, "joint", "translation")
-    with pytest.raises(ValueError, match="dofs must be one of"):
-        ood_gate.is_out_of_distribution(fused, 0.85, "class", "rotation")
+        ood_gate.is_out_of_distribution(fused, 0.85, "joint")
 
 
-def test_ood_gate_tests_the_observed_blocks_of_the_command():
+def test_ood_gate_tests_the_observed_axes_of_the_command():
     mixture = make_two_class_mixture()  # class 1: v = (0.3, 0, 0), omega_z = 2 v_x = 0.6, Gamma = 0.01 I
     s_u, g_u = user_covs()
 
-    def ood(command, dofs, missing_zeros=True):
+    def ood(command, missing_zeros=True):
         command = torch.tensor([command])
         observed = command.abs() > 0 if missing_zeros else None
         fused = posterior.fuse_user_command(mixture, command, s_u, g_u, observed=observed)
-        return bool(ood_gate.is_out_of_distribution(fused, 0.85, "class", dofs)[0])
+        return bool(ood_gate.is_out_of_distribution(fused, 0.85, "class")[0])
 
     # translation only, matching class 1: its zero rotation is missing, not a command to hold still
     translation_only = [0.3, 0, 0, 0, 0, 0]
-    assert not ood(translation_only, "twist") and not ood(translation_only, "translation")
-    assert ood(translation_only, "twist", missing_zeros=False)  # 0.6^2 / 0.01 = 36 > chi2(0.85, 6)
-    # rotation only, opposite to every class's rotation: the twist gate sees it
-    rotation_only = [0, 0, 0, 0, 0, -1.0]
-    assert ood(rotation_only, "twist")
-    assert not ood(rotation_only, "translation")  # no translation observed: nothing to test
-    assert not ood([0.3, 0, 0, 0, 0, -1.0], "translation")
+    assert not ood(translation_only)
+    assert ood(translation_only, missing_zeros=False)  # 0.6^2 / 0.01 = 36 > chi2(0.85, 6)
+    # rotation only, opposite to every class's rotation
+    assert ood([0, 0, 0, 0, 0, -1.0])
     # one axis tested against chi2(0.85, 1) = 2.07: 0.15 m/s off class 1's v_x (3.4 sigma) is OOD, 0.03 is not
-    assert ood([0.45, 0, 0, 0, 0, 0], "twist") and not ood([0.33, 0, 0, 0, 0, 0], "twist")
-    # a full twist matching class 1 passes every gate
-    for dofs in ood_gate.OOD_DOFS:
-        assert not ood([0.3, 0, 0, 0, 0, 0.6], dofs)
+    assert ood([0.45, 0, 0, 0, 0, 0]) and not ood([0.33, 0, 0, 0, 0, 0])
+    # a full twist matching class 1 passes; nothing observed is never OOD
+    assert not ood([0.3, 0, 0, 0, 0, 0.6])
+    assert not ood([0.0] * 6)
 
 
 def test_missing_axes_are_left_to_the_prior_and_equal_a_huge_user_variance():
@@ -356,8 +344,6 @@ def test_missing_axes_are_left_to_the_prior_and_equal_a_huge_user_variance():
 def test_shared_control_config_rejects_unknown_ood_gate_options():
     with pytest.raises(ValueError, match="ood_covariance must be one of"):
         SharedControlConfig(ood_covariance="user")
-    with pytest.raises(ValueError, match="ood_dofs must be one of"):
-        SharedControlConfig(ood_dofs="all")
     with pytest.raises(ValueError, match="uncommanded_axes must be one of"):
         SharedControlConfig(uncommanded_axes="zero")
 
@@ -492,9 +478,6 @@ def test_no_input_near_the_object_surface_hands_control_to_the_user():
     obs[features.POINT_CLOUD_MASK][0, 0] = 0.0
     ctrl.step(obs, None)
     assert ctrl.last_diagnostics.mode == "autonomous"
-    # asynchronous mode off: no autonomy even far away
-    ctrl_sync = SharedController(HandBuiltPrior(), SharedControlConfig(asynchronous=False))
-    assert torch.equal(ctrl_sync.step(make_observation(), None), torch.zeros(1, 6))
 
 
 def test_the_table_top_is_part_of_the_scene_for_the_proximity_rules():
@@ -539,7 +522,7 @@ def test_prior_covariance_scale_gives_the_users_command_more_weight():
     actions = {}
     for scale in (1.0, 10.0):
         ctrl = SharedController(HandBuiltPrior(weights=(0.01, 0.99)), SharedControlConfig(
-            prior_covariance_scale=scale, adapt_user_covariance=False, max_linear_speed=None, belief_memory=0.0))
+            prior_covariance_scale=scale, user_cov_decay=1.0, max_linear_speed=None, belief_memory=0.0))
         actions[scale] = ctrl.step(make_observation(), user)[0]
         assert ctrl.last_diagnostics.mode == "shared"
     # class 1: mean 0.3, variance 0.002 per axis; user variance 0.03
@@ -594,7 +577,7 @@ def test_shared_action_fuses_the_observed_axes_of_the_command():
 
 def test_ood_gate_hands_control_to_user_for_three_steps_then_gives_it_back():
     prior = HandBuiltPrior()
-    ctrl = SharedController(prior, SharedControlConfig.preset("paper", ood_steps=3, adapt_user_covariance=False))
+    ctrl = SharedController(prior, SharedControlConfig.preset("paper", ood_steps=3, user_cov_decay=1.0))
     obs = make_observation()
     far = torch.tensor([[0.0, 0.0, 0.4, 0.0, 0.0, 0.0]])  # orthogonal to both classes
     near = torch.tensor([[0.27, 0.0, 0.0, 0.0, 0.0, 0.0]])

@@ -390,7 +390,7 @@ def test_benchmark_refuses_to_resume_with_other_shared_control_settings(tmp_path
     with pytest.raises(BenchmarkError, match="shared_control"):
         results_store(paper.output, paper.fingerprint(ckpt))
     with pytest.raises(BenchmarkError, match="bad shared_control settings"):
-        BenchmarkConfig(output=tmp_path, shared_control={"ood_dofs": "rotation"})
+        BenchmarkConfig(output=tmp_path, shared_control={"ood_covariance": "user"})
     with pytest.raises(BenchmarkError, match="bad shared_control settings"):
         BenchmarkConfig(output=tmp_path, shared_control={"no_such_field": 1})
     with pytest.raises(BenchmarkError, match="speed limits come from the env"):

@@ -68,9 +68,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "higher trusts the prior more")
     parser.add_argument("--ood-covariance", choices=["class", "predictive"], default=None,
                         help="RT-V3 OOD gate distance under the class covariance (paper) or class + user noise (tuned)")
-    parser.add_argument("--ood-dofs", choices=["twist", "translation"], default=None,
-                        help="RT-V3 OOD gate on the whole twist (default) or on the translation only "
-                             "(docs/PAPER_DETAILS.md)")
     parser.add_argument("--prior-covariance-scale", type=float, default=None,
                         help="factor on the prior's step-0 covariances before the gate and the fusion (tuned 100, "
                              "paper 1); larger gives the user's command more weight against an overconfident prior")
@@ -107,7 +104,7 @@ def shared_control_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """The ``SharedControlConfig`` fields the command line sets (``off`` -> None), the others left to the preset."""
     return {
         key: (None if value == "off" else value)
-        for key in ("ood_alpha", "ood_covariance", "ood_dofs", "prior_covariance_scale",
+        for key in ("ood_alpha", "ood_covariance", "prior_covariance_scale",
                     "goal_belief_margin")
         if (value := getattr(args, key, None)) is not None
     }

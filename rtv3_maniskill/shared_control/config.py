@@ -23,8 +23,6 @@ class SharedControlConfig:
     """Norm limit on the executed translation velocity (m/s); None = no limit."""
     max_angular_speed: float | None = 1.5
     """Norm limit on the executed rotation velocity (rad/s); None = no limit."""
-    asynchronous: bool = True
-    """Execute the prior's most likely action while the user gives no command (paper)."""
     autonomy_cutoff_distance: float = 0.07
     """Asynchronous autonomy is off within this distance (m) of the nearest scene point.
     The paper gives no number; 7 cm sits just outside the 5 cm pre-grasp offset."""
@@ -41,10 +39,8 @@ class SharedControlConfig:
     ood_covariance: str = "predictive"
     """Covariance of the OOD test's Mahalanobis distance: ``"predictive"`` (``Sigma_k + S_u``: a
     command is judged with the user's own noise) or ``"class"`` (``Sigma_k``, docs/PAPER_DETAILS.md's
-    "distance to the nearest class", the paper's reading); see :func:`ood_gate.is_out_of_distribution`."""
-    ood_dofs: str = "twist"
-    """What the OOD test looks at: ``"twist"`` (translation and rotation) or ``"translation"``
-    (docs/PAPER_DETAILS.md); see :func:`ood_gate.is_out_of_distribution`."""
+    "distance to the nearest class", the paper's reading); the test looks at the command's observed
+    translation and rotation axes (:func:`~rtv3_maniskill.shared_control.ood_gate.is_out_of_distribution`)."""
     uncommanded_axes: str = "missing_unused"
     """How a zero axis (``|u_i| <= input_threshold``) of a command that is not zero altogether is
     read: ``"missing"``, an axis the device does not give, so neither the fusion nor the OOD test
@@ -57,12 +53,13 @@ class SharedControlConfig:
     """Initial S_u diagonal ((m/s)^2)."""
     user_rot_var: float = 0.1
     """Initial G_u diagonal ((rad/s)^2)."""
-    adapt_user_covariance: bool = True
     user_cov_window: int = 14
+    """Recent commands the user covariance is estimated from
+    (:class:`~rtv3_maniskill.shared_control.user_covariance.UserCovarianceEstimator`)."""
     user_cov_decay: float = 0.8
+    """Weight of the current user covariance in each update (1: S_u and G_u stay at their initial values)."""
     user_cov_floor: float = 0.01
-    reweight_rotation_at: str = "prior"
-    """See :func:`posterior.fuse_user_command` ("prior" = paper, "fused" = docs/PAPER_DETAILS.md)."""
+    """Least geometric-mean variance of S_u and G_u."""
     belief_memory: float = 1.0
     """Recursive goal belief. 0 (the paper): every step's class weights are the prior's alone, the
     evidence of earlier commands is forgotten. In (0, 1]: the log-likelihood of the user's commands
@@ -114,12 +111,8 @@ class SharedControlConfig:
             raise ValueError(f"ood_steps must be >= 0, got {self.ood_steps}")
         if self.ood_covariance not in ood_gate.OOD_COVARIANCES:
             raise ValueError(f"ood_covariance must be one of {ood_gate.OOD_COVARIANCES}, got {self.ood_covariance!r}")
-        if self.ood_dofs not in ood_gate.OOD_DOFS:
-            raise ValueError(f"ood_dofs must be one of {ood_gate.OOD_DOFS}, got {self.ood_dofs!r}")
         if self.uncommanded_axes not in UNCOMMANDED_AXES:
             raise ValueError(f"uncommanded_axes must be one of {UNCOMMANDED_AXES}, got {self.uncommanded_axes!r}")
-        if self.reweight_rotation_at not in ("prior", "fused"):
-            raise ValueError(f"reweight_rotation_at must be 'prior' or 'fused', got {self.reweight_rotation_at!r}")
         if self.mode_search_starts < 1 or self.mode_search_iters < 0 or not self.mode_search_tol >= 0:
             raise ValueError("need mode_search_starts >= 1, mode_search_iters >= 0 and mode_search_tol >= 0, got "
                              f"{self.mode_search_starts}, {self.mode_search_iters}, {self.mode_search_tol}")

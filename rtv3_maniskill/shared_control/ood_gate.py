@@ -26,42 +26,32 @@ def ood_threshold(alpha: float = 0.85, dof: int = 3) -> float:
 
 
 OOD_COVARIANCES = ("class", "predictive")
-OOD_DOFS = ("translation", "twist")
-"""Which blocks of the user command the OOD test looks at (see :func:`is_out_of_distribution`)."""
+"""Covariances of the OOD test's Mahalanobis distance (see :func:`is_out_of_distribution`)."""
 
 
-def is_out_of_distribution(
-    fused: FactorizedTwistMixture, alpha: float, covariance: str = "class", dofs: str = "twist"
-) -> torch.Tensor:
+def is_out_of_distribution(fused: FactorizedTwistMixture, alpha: float, covariance: str = "class") -> torch.Tensor:
     """``(B,)`` bool: the user command is farther than ``chi2.ppf(alpha, d)`` (squared Mahalanobis,
-    ``d`` the number of observed axes tested) from *every* class, i.e. from the nearest one.
+    ``d`` the number of observed axes) from *every* class, i.e. from the nearest one.
 
-    ``covariance``: ``"class"`` measures the distance under each class's own covariance (docs/PAPER_DETAILS.md:
-    "the Mahalanobis distance of the user translation to the nearest class": is the command a
-    plausible draw of one of the prior's maneuvers?); ``"predictive"`` adds the user covariance
-    (``Sigma_k + S_u``: the density of a noisy command; with the authors' ``S_u`` of 0.01-0.03
-    (m/s)^2 it accepts any command within ~0.3 m/s of a class mean, so a prior that has stalled
-    keeps control).
+    The distance to a class is the sum of the translation and rotation distances (``v_u`` and
+    ``w_u`` are independent given the class), over the observed axes of the command only
+    (``fused.observed``; the marginal distance, ``d`` = their number); with none observed the
+    command is never OOD.
 
-    ``dofs``: ``"translation"`` (docs/PAPER_DETAILS.md) tests ``v_u``; ``"twist"`` the sum of the translation
-    and rotation distances to the same class (``v_u`` and ``w_u`` are independent given the
-    class). Only the observed axes of the command count (``fused.observed``; the marginal
-    distance, ``d`` = their number); with none observed the command is never OOD.
+    ``covariance``: ``"class"`` measures the distance under each class's own covariance
+    (docs/PAPER_DETAILS.md: "the Mahalanobis distance of the user translation to the nearest
+    class": is the command a plausible draw of one of the prior's maneuvers?); ``"predictive"``
+    adds the user covariance (``Sigma_k + S_u``: the density of a noisy command).
     """
     if covariance not in OOD_COVARIANCES:
         raise ValueError(f"covariance must be one of {OOD_COVARIANCES}, got {covariance!r}")
-    if dofs not in OOD_DOFS:
-        raise ValueError(f"dofs must be one of {OOD_DOFS}, got {dofs!r}")
     if covariance == "class":
         trans, rot = fused.trans_class_mahalanobis_sq, fused.rot_class_mahalanobis_sq
     else:
         trans, rot = fused.trans_mahalanobis_sq, fused.rot_mahalanobis_sq
     if trans is None or rot is None or fused.observed is None:
         raise ValueError("this mixture carries no user command (use fuse_user_command)")
-    tested = fused.observed[:, :3].sum(-1)
-    maha = trans
-    if dofs == "twist":
-        tested = tested + fused.observed[:, 3:].sum(-1)
-        maha = trans + rot
+    tested = fused.observed.sum(-1)
+    maha = trans + rot
     thresholds = torch.tensor([math.inf] + [ood_threshold(alpha, d) for d in range(1, 7)], dtype=maha.dtype)
     return maha.min(-1).values > thresholds[tested]

@@ -9,14 +9,11 @@ Paper, Sec. "Posterior Decision Making". Per maneuver class ``k`` (B batch, K cl
 * class weights (Eq. p(z | h_0, a_0^u)):
   ``pi_k' ∝ pi_k N(v_u; mu_k, Sigma_k + S_u) N(w_u; omega_k, Gamma_k + G_u)``.
 
-Reading of the class weights. The paper writes the class likelihood with the *prior*
-component ``N(v_u; mu_z, Sigma_z) N(w_u; omega_z, Gamma_z)``; docs/PAPER_DETAILS.md (authors' code)
-writes the rotation term at the fused translation ``omega_k'``. We follow the paper's
-choice of the prior component (rotation Gaussian evaluated at the prior translation mean
-``mu_k``, ``reweight_rotation_at="prior"``, the default) and add the user covariance to
-both terms, which is the exact marginal ``∫ N(u; a, S_u) N(a; mu, Sigma) da`` under the
-paper's own likelihood model ``p(u | a) = N(u; a, Sigma_sys)``. ``"fused"`` gives the
-docs/PAPER_DETAILS.md variant.
+The class weights use the *prior* component, as the paper writes the class likelihood
+(``N(v_u; mu_z, Sigma_z) N(w_u; omega_z, Gamma_z)``, the rotation Gaussian at the prior translation
+mean ``mu_k``), with the user covariance added to both terms: the exact marginal
+``∫ N(u; a, S_u) N(a; mu, Sigma) da`` under the paper's likelihood model
+``p(u | a) = N(u; a, Sigma_sys)``.
 
 All computation runs in float64; inputs may be float32. Covariances are regularised
 (:func:`~rtv3_maniskill.shared_control.gaussians.regularize_covariance`) before use, so no step
@@ -145,8 +142,6 @@ def fuse_user_command(
     user_twist: torch.Tensor,
     user_trans_cov: torch.Tensor,
     user_rot_cov: torch.Tensor,
-    reweight_rotation_at: str = "prior",
-    prior: FactorizedTwistMixture | None = None,
     observed: torch.Tensor | None = None,
 ) -> FactorizedTwistMixture:
     """Posterior step-0 mixture given the user command (paper, Sec. Posterior Decision Making).
@@ -156,10 +151,6 @@ def fuse_user_command(
         user_twist: ``(B, 6)`` user command ``[v_u, w_u]``, EE body frame.
         user_trans_cov: ``(B, 3, 3)`` ``S_u`` (the paper's Sigma^sys).
         user_rot_cov: ``(B, 3, 3)`` ``G_u`` (the paper's Gamma^sys).
-        reweight_rotation_at: ``"prior"`` (paper: rotation term of the class likelihood at
-            ``omega_k(mu_k)``) or ``"fused"`` (docs/PAPER_DETAILS.md: at ``omega_k(mu_k')``).
-        prior: optional :func:`prior_twist_mixture` of the same ``mixture``; its class weights,
-            translation Gaussians and rotation Gaussians are reused instead of recomputed.
         observed: optional ``(B, 6)`` bool, the axes of the command that carry an observation
             (default: all). An unobserved axis is a missing measurement, not a zero one: the
             user covariance gets an infinite variance (``MAX_VARIANCE``) along it and no
@@ -168,7 +159,7 @@ def fuse_user_command(
     Returns:
         The fused mixture; ``log_weights`` are ``log pi_k'``.
     """
-    return _prior_and_fused(mixture, user_twist, user_trans_cov, user_rot_cov, reweight_rotation_at, prior, observed)[1]
+    return prior_and_fused_mixtures(mixture, user_twist, user_trans_cov, user_rot_cov, observed)[1]
 
 
 def prior_and_fused_mixtures(
@@ -176,32 +167,14 @@ def prior_and_fused_mixtures(
     user_twist: torch.Tensor,
     user_trans_cov: torch.Tensor,
     user_rot_cov: torch.Tensor,
-    reweight_rotation_at: str = "prior",
     observed: torch.Tensor | None = None,
 ) -> tuple[FactorizedTwistMixture, FactorizedTwistMixture]:
     """``(prior_twist_mixture(mixture), fuse_user_command(mixture, ...))`` with the rotation Gaussians
     at the prior means ``mu_k`` and at the fused means ``mu_k'`` from one call of
-    ``rotation_given_translation`` (one pass through the network's rotation head per step)."""
-    return _prior_and_fused(mixture, user_twist, user_trans_cov, user_rot_cov, reweight_rotation_at, None, observed)
-
-
-def _prior_and_fused(
-    mixture: TwistMixture,
-    user_twist: torch.Tensor,
-    user_trans_cov: torch.Tensor,
-    user_rot_cov: torch.Tensor,
-    reweight_rotation_at: str,
-    prior: FactorizedTwistMixture | None,
-    observed: torch.Tensor | None,
-) -> tuple[FactorizedTwistMixture, FactorizedTwistMixture]:
-    """See :func:`fuse_user_command`; also returns the prior mixture (``prior`` if given)."""
-    if prior is not None:  # already checked, normalised and regularised by prior_twist_mixture
-        prior_lw, mu, sigma = prior.prior_log_weights, prior.trans_mean, prior.trans_cov
-    else:
-        prior_lw, mu, sigma = _prior_translation(mixture)
+    ``rotation_given_translation`` (one pass through the network's rotation head per step).
+    Arguments as :func:`fuse_user_command`."""
+    prior_lw, mu, sigma = _prior_translation(mixture)
     b, k = prior_lw.shape
-    if reweight_rotation_at not in ("prior", "fused"):
-        raise ValueError(f"reweight_rotation_at must be 'prior' or 'fused', got {reweight_rotation_at!r}")
     user = user_twist.double()
     if user.shape != (b, 6):
         raise ValueError(f"user_twist must be ({b}, 6) to match the mixture, got {tuple(user.shape)}")
@@ -226,21 +199,17 @@ def _prior_and_fused(
     # Translation: Kalman fusion per class (Eq. K_v).
     mu_f, sigma_f, _ = kalman_update(mu, sigma, v_u, s_u)
     # Rotation conditioned on the fused translation (Eq. rotgmm at mu_k'), with the prior's at mu_k
-    # in the same call when the prior mixture is not given.
-    if prior is None:
-        omega, gamma = _rotation_at(mixture, torch.stack([mu, mu_f]))
-        prior = FactorizedTwistMixture(prior_lw, mu, sigma, omega[0], gamma[0], prior_lw.clone())
-        omega_f, gamma_f = omega[1], gamma[1]
-    else:
-        omega_f, gamma_f = _rotation_at(mixture, mu_f)
+    # in the same call.
+    omega, gamma = _rotation_at(mixture, torch.stack([mu, mu_f]))
+    prior = FactorizedTwistMixture(prior_lw, mu, sigma, omega[0], gamma[0], prior_lw.clone())
+    omega_f, gamma_f = omega[1], gamma[1]
     # ... then fused with w_u (Eq. K_w).
     omega_post, gamma_post = kalman_update(omega_f, gamma_f, w_u, g_u)[:2]
 
-    # Class re-weighting (Eq. p(z | h_0, a_0^u)), in log space.
+    # Class re-weighting (Eq. p(z | h_0, a_0^u)) with the prior components, in log space.
     # Sums of two regularised SPD matrices are SPD: no second eigen-decomposition needed.
     log_lik_v, trans_maha = gaussian_log_prob_and_mahalanobis_sq(v_u, mu, sigma + s_u)
-    omega_r, gamma_r = (prior.rot_mean, prior.rot_cov) if reweight_rotation_at == "prior" else (omega_f, gamma_f)
-    log_lik_w, rot_maha = gaussian_log_prob_and_mahalanobis_sq(w_u, omega_r, gamma_r + g_u)
+    log_lik_w, rot_maha = gaussian_log_prob_and_mahalanobis_sq(w_u, prior.rot_mean, prior.rot_cov + g_u)
     post_lw = prior_lw + log_lik_v + log_lik_w
     post_lw = torch.where(torch.isnan(post_lw), torch.full_like(post_lw, -math.inf), post_lw)
     no_support = ~torch.isfinite(post_lw).any(-1, keepdim=True)
@@ -257,7 +226,7 @@ def _prior_and_fused(
         trans_mahalanobis_sq=trans_maha,
         rot_mahalanobis_sq=rot_maha,
         trans_class_mahalanobis_sq=mahalanobis_sq(v_u, mu, sigma + missing_v),
-        rot_class_mahalanobis_sq=mahalanobis_sq(w_u, omega_r, gamma_r + missing_w),
+        rot_class_mahalanobis_sq=mahalanobis_sq(w_u, prior.rot_mean, prior.rot_cov + missing_w),
         observed=observed,
     )
 

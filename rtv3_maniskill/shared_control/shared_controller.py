@@ -1,35 +1,28 @@
-"""RT-V3 shared controller: prior + user command -> executed body twist (paper, Sec. Posterior Decision Making).
+"""RT-V3 shared controller: prior + user command -> executed body twist (paper, Sec. V).
 
-Per step and batch element, one of three modes (``SharedControlDiagnostics.modes``):
+Per step and batch element, one of three modes (:data:`MODES`, ``SharedControlDiagnostics.modes``):
 
-* ``"shared"``: a user command arrived and is in distribution -> fuse it with the
-  prior's step-0 mixture (:func:`posterior.prior_and_fused_mixtures`, which also gives the prior
-  mixture, :func:`posterior.fuse_user_command` alone) and execute the mode of
-  the fused mixture (:func:`mode_search.mixture_mode`). The zero axes of a command are, by
-  default (``uncommanded_axes="missing_unused"``), axes the device does not give, not fused, so
-  the prior fills them in (a mode-switching or single-axis user), as long as the user has never
-  commanded that axis and the EE is farther than ``autonomy_cutoff_distance`` from the scene; a
-  zero on an axis the user has commanded before, and near the scene a zero axis of a kind
-  (translation or rotation) the user has commanded before, means "hold still".
-* ``"autonomous"``: no user command (``None`` or all zeros), asynchronous mode on, and
-  the EE is farther than ``autonomy_cutoff_distance`` from every scene point and from the table
-  top (``table_height``; the cloud is cropped above it) -> execute
-  the prior's most likely action (argmax class, then its Gaussians' means; :func:`most_likely_twist`).
-* ``"user_only"``: the user's own command is executed (zeros if none). Happens (a) with
-  no command within ``autonomy_cutoff_distance`` of the object surface (the user has
-  control for the final approach), (b) in the out-of-distribution window: the command's
-  observed axes are farther than ``chi2.ppf(ood_alpha, d)`` (squared Mahalanobis under the
-  class covariances, ``d`` observed axes; :func:`ood_gate.is_out_of_distribution` for the
-  variants in docs/PAPER_DETAILS.md) from every class -> this step and the next ``ood_steps`` steps, class
-  weights kept at the prior's (no re-weighting with an OOD command); a new OOD command
-  inside the window restarts it, (c) the documented fallback for an empty grasp set:
-  with no candidate grasps the prior has nothing to condition on, so the policy is not
+* ``"shared"``: a user command arrived and is in distribution -> fuse it with the prior's step-0
+  mixture on the command's observed axes (:func:`~rtv3_maniskill.shared_control.posterior.
+  prior_and_fused_mixtures`; which zero axes are missing: :mod:`~rtv3_maniskill.shared_control.
+  command_axes`) and execute the mode of the fused mixture
+  (:func:`~rtv3_maniskill.shared_control.mode_search.mixture_mode`).
+* ``"autonomous"`` (asynchronous mode): no user command (``None`` or all zeros) and the EE farther
+  than ``autonomy_cutoff_distance`` from every scene point and from the table top -> execute the
+  prior's most likely action (:mod:`~rtv3_maniskill.shared_control.autonomy`).
+* ``"user_only"``: the user's own command is executed (zeros if none). Happens (a) with no command
+  within ``autonomy_cutoff_distance`` of the scene (the user has control for the final approach),
+  (b) in the out-of-distribution window: the command is farther than ``chi2.ppf(ood_alpha, d)``
+  from every class (:mod:`~rtv3_maniskill.shared_control.ood_gate`) -> this step and the next
+  ``ood_steps`` steps, class weights kept at the prior's; a new OOD command inside the window
+  restarts it, (c) with an empty grasp set: the prior has nothing to condition on, so it is not
   called and the user drives alone.
 
-In every mode that calls the prior, the prior is shown only the grasp candidates that a recursive
-belief over them, built from the user's commands, keeps (``goal_belief_margin``;
-:mod:`~rtv3_maniskill.shared_control.goal_belief`); the paper's prior sees them all.
-
+The class weights carry the evidence of earlier commands (``belief_memory``;
+:mod:`~rtv3_maniskill.shared_control.class_belief`), and the prior is shown only the grasp
+candidates that a recursive belief over them keeps (``goal_belief_margin``;
+:mod:`~rtv3_maniskill.shared_control.goal_belief`); the paper's prior sees them all. The user
+covariances adapt to the user's commands (:mod:`~rtv3_maniskill.shared_control.user_covariance`).
 Every output is clamped to ``max_linear_speed`` / ``max_angular_speed`` (norms).
 """
 
@@ -123,7 +116,6 @@ class SharedController:
                 window=c.user_cov_window,
                 decay=c.user_cov_decay,
                 floor=c.user_cov_floor,
-                adapt=c.adapt_user_covariance,
             )
         elif b != self._batch_size:
             raise ValueError(f"batch size changed from {self._batch_size} to {b} without reset()")
@@ -192,9 +184,8 @@ class SharedController:
             fused = None
             fired = torch.zeros(b, dtype=torch.bool)
             if (active & ~no_grasps).any():
-                prior, fused = posterior.prior_and_fused_mixtures(
-                    mixture, user, s_u, g_u, c.reweight_rotation_at, observed=observed)
-                fired = (active & ood_gate.is_out_of_distribution(fused, c.ood_alpha, c.ood_covariance, c.ood_dofs)
+                prior, fused = posterior.prior_and_fused_mixtures(mixture, user, s_u, g_u, observed)
+                fired = (active & ood_gate.is_out_of_distribution(fused, c.ood_alpha, c.ood_covariance)
                          & ~no_grasps)
             else:
                 prior = posterior.prior_twist_mixture(mixture)
@@ -203,8 +194,6 @@ class SharedController:
             ood = (in_window | fired) & ~no_grasps
             shared = active & ~ood & ~no_grasps
             autonomous = ~active & ~ood & ~no_grasps & (dist > c.autonomy_cutoff_distance)
-            if not c.asynchronous:
-                autonomous = torch.zeros_like(autonomous)
             if shared.any():
                 assert fused is not None
                 mode = mixture_mode(fused, c.mode_search_starts, c.mode_search_iters, c.mode_search_tol)

@@ -22,6 +22,14 @@ class UserCovarianceEstimator:
     left as it is. So the covariance follows the user's command spread but never
     collapses below a geometric-mean variance of ``floor`` (which would hand the user
     full authority), and it can grow again when the user becomes noisier.
+
+    Args:
+        batch_size: B.
+        init_trans_var, init_rot_var: initial diagonal of ``S_u`` ((m/s)^2) and ``G_u`` ((rad/s)^2).
+        window: the most recent active commands kept per element.
+        decay: weight of the current block in an update (1 keeps the initial covariances).
+        floor: least geometric-mean variance ``det^(1/3)`` of an updated block.
+        min_samples: stored commands needed before the first update.
     """
 
     def __init__(
@@ -33,7 +41,6 @@ class UserCovarianceEstimator:
         decay: float = 0.8,
         floor: float = 0.01,
         min_samples: int = 2,
-        adapt: bool = True,
     ) -> None:
         if batch_size < 1 or window < 2 or not 0.0 <= decay <= 1.0 or min_samples < 2 or min_samples > window:
             raise ValueError(
@@ -49,7 +56,6 @@ class UserCovarianceEstimator:
         self.decay = decay
         self.floor = floor
         self.min_samples = min_samples
-        self.adapt = adapt
         self.reset()
 
     def reset(self) -> None:
@@ -79,7 +85,7 @@ class UserCovarianceEstimator:
             self._buffer[i, self._count[i] % self.window] = user_twist[i].double()
             self._count[i] += 1
             n = int(min(self._count[i], self.window))
-            if not self.adapt or n < self.min_samples:
+            if n < self.min_samples:
                 continue
             samples = self._buffer[i, :n]
             centred = samples - samples.mean(0, keepdim=True)
