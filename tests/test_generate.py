@@ -25,9 +25,8 @@ from rtv3_maniskill.datagen.lerobot_export import (
     StagingArea,
     end_at_pregrasp,
 )
-from rtv3_maniskill.features import REPO_ID
+from rtv3_maniskill.features import PREGRASP_DISTANCE, REPO_ID
 from rtv3_maniskill.records import RecordStore
-from rtv3_maniskill.tasks.grasp_sampler import PREGRASP_DISTANCE
 
 ARGS = ["--num-points", "256", "--max-grasps", "16", "--context", "mesh", "--scene-type", "packed"]
 

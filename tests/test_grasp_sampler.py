@@ -27,12 +27,9 @@ from rtv3_maniskill.robot.scene_geometry import (
     SceneGeometry,
 )
 from rtv3_maniskill.se3 import quat_to_matrix
-from rtv3_maniskill.tasks.grasp_sampler import (
-    FRICTION_COEFFICIENT,
-    GraspSet,
-    canonicalize_symmetric,
-    sample_grasps,
-)
+from rtv3_maniskill.tasks.antipodal_grasps import FRICTION_COEFFICIENT
+from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric, sample_grasps
+from rtv3_maniskill.tasks.grasp_set import GraspSet
 
 CONE = math.atan(FRICTION_COEFFICIENT)
 CLEARANCE = 0.01  # sample_grasps' default finger_clearance

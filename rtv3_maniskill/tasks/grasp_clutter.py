@@ -48,7 +48,8 @@ from rtv3_maniskill.robot.scene_geometry import (
 )
 from rtv3_maniskill.robot.twist_controller import PandaTwist, set_execution  # noqa: F401  (registers)
 from rtv3_maniskill.tasks.convex_cache import convex_part_file
-from rtv3_maniskill.tasks.grasp_sampler import GraspSet, sample_grasps
+from rtv3_maniskill.tasks.grasp_sampler import sample_grasps
+from rtv3_maniskill.tasks.grasp_set import GraspSet
 from rtv3_maniskill.tasks.object_library import make_object_set
 from rtv3_maniskill.tasks.point_cloud import DEFAULT_VOXEL_SIZE, process_point_cloud, sample_scene_surface
 from rtv3_maniskill.tasks.scene_generation import (
