@@ -16,6 +16,11 @@ Observations (every mode has the same ``extra`` keys; ``B = num_envs``):
 * ``extra.point_cloud (B, N, 6)`` / ``extra.point_cloud_mask (B, N)``: xyz (world) + rgb,
   from the depth camera with ``obs_mode="pointcloud"``, else sampled from the object meshes.
 
+The task class keeps ManiSkill's hooks; the scene building is in
+:mod:`~rtv3_maniskill.tasks.clutter_scene`, the cameras and the depth camera's cloud in
+:mod:`~rtv3_maniskill.tasks.cameras`, what the robot touches in
+:mod:`~rtv3_maniskill.tasks.robot_contacts`.
+
 Layouts are computed per sub-scene from the episode seed, so the same seed gives the
 same scene and grasps; with ``num_envs > 1`` (GPU backend) every sub-scene has its own
 clutter and partial resets (``options={"env_idx": ...}``) keep it.
@@ -29,9 +34,6 @@ import numpy as np
 import sapien
 import torch
 from mani_skill.envs.sapien_env import BaseEnv
-from mani_skill.envs.utils.observations.observations import sensor_data_to_pointcloud
-from mani_skill.sensors.camera import CameraConfig
-from mani_skill.utils import sapien_utils
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.scene_builder.table import TableSceneBuilder
 from mani_skill.utils.structs.types import SimConfig
@@ -39,32 +41,24 @@ from mani_skill.utils.structs.types import SimConfig
 from rtv3_maniskill import se3
 from rtv3_maniskill.features import DEFAULT_MAX_GRASPS, DEFAULT_NUM_POINTS, FPS, GRASP_DIM, pregrasp_poses
 from rtv3_maniskill.robot.execution import EXECUTIONS
-from rtv3_maniskill.robot.scene_geometry import (
-    READY_QPOS,
-    ROBOT_BASE_POSITION,
-    TABLE_TOP_CENTER,
-    WORKSPACE_CENTER,
-    SceneGeometry,
-)
+from rtv3_maniskill.robot.scene_geometry import READY_QPOS, ROBOT_BASE_POSITION, SceneGeometry
 from rtv3_maniskill.robot.twist_controller import PandaTwist, set_execution  # noqa: F401  (registers)
-from rtv3_maniskill.tasks.convex_cache import convex_part_file
-from rtv3_maniskill.tasks.grasp_sampler import sample_grasps
+from rtv3_maniskill.tasks import cameras
+from rtv3_maniskill.tasks.clutter_scene import (
+    build_object,
+    build_pedestal,
+    generate_scene,
+    sample_mesh_point_cloud,
+    table_pose,
+)
 from rtv3_maniskill.tasks.grasp_set import GraspSet
 from rtv3_maniskill.tasks.object_library import make_object_set
-from rtv3_maniskill.tasks.point_cloud import DEFAULT_VOXEL_SIZE, process_point_cloud, sample_scene_surface
-from rtv3_maniskill.tasks.scene_generation import (
-    SCENE_TYPES,
-    add_collision_shapes,
-    generate_layout,
-    matrix_to_sapien_pose,
-)
+from rtv3_maniskill.tasks.point_cloud import DEFAULT_VOXEL_SIZE
+from rtv3_maniskill.tasks.robot_contacts import BASE_LINK, RobotContactPairs
+from rtv3_maniskill.tasks.scene_generation import SCENE_TYPES, matrix_to_sapien_pose
 
 START_QPOS = np.concatenate([READY_QPOS, [0.04, 0.04]])
 """Default start (arm + open fingers): the ready pose, plus N(0, 0.02) per joint at reset."""
-
-
-CLOUD_SEED_OFFSET = 104729
-"""Added to the episode seed for the camera cloud's resampling stream (apart from the scene's)."""
 
 
 @register_env("GraspClutter-v1", max_episode_steps=150)
@@ -155,25 +149,12 @@ class GraspClutterEnv(BaseEnv):
 
     @property
     def _default_sensor_configs(self):
-        eye = WORKSPACE_CENTER + np.array([0.32, 0.0, 0.30])
-        if self.randomize_camera and self._episode_seed is not None:
-            rng = np.random.default_rng(int(self._episode_seed[0]) + 7919)
-            azimuth = rng.uniform(-np.pi / 2, np.pi / 2)
-            elevation = rng.uniform(np.deg2rad(35), np.deg2rad(65))
-            radius = rng.uniform(0.5, 0.7)
-            eye = WORKSPACE_CENTER + radius * np.array(
-                [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)]
-            )
-        pose = sapien_utils.look_at(eye=eye.tolist(), target=[WORKSPACE_CENTER[0], WORKSPACE_CENTER[1], 0.06])
-        res = self.camera_resolution
-        return [CameraConfig("depth_camera", pose, res, res, np.deg2rad(50), 0.05, 2.0)]
+        seed = int(self._episode_seed[0]) if self._episode_seed is not None else None
+        return [cameras.depth_camera_config(self.camera_resolution, self.randomize_camera, seed)]
 
     @property
     def _default_human_render_camera_configs(self):
-        # From the front side and above: the arm reaches in from the side of the frame, not over the
-        # workspace; the hand at the ready pose and the objects are both in view.
-        pose = sapien_utils.look_at([WORKSPACE_CENTER[0] + 0.27, 0.42, 0.58], [WORKSPACE_CENTER[0] - 0.09, -0.02, 0.17])
-        return CameraConfig("render_camera", pose, 512, 512, 0.85, 0.01, 100)
+        return cameras.render_camera_config()
 
     # ------------------------------------------------------------------ loading
 
@@ -184,12 +165,11 @@ class GraspClutterEnv(BaseEnv):
     def _load_scene(self, options: dict):
         self._contact_links = None
         self._contact_pairs = None  # robot_contact_kinds' body pairs (and GPU query) belong to this scene
-        self._contact_query = None
         self.table_scene = TableSceneBuilder(self, robot_init_qpos_noise=0.0)
         self.table_scene.build()
-        self.table_scene.table.set_pose(self._table_pose)
+        self.table_scene.table.set_pose(table_pose(self.table_scene.table_height))
         if self.scene.can_render():
-            self._build_pedestal()
+            build_pedestal(self.scene, self.table_scene.table_height)
         self.layouts, self.grasp_sets, self.objects = [], [], []
         grasps = torch.zeros(self.num_envs, self.max_grasps, GRASP_DIM)
         grasps_mask = torch.zeros(self.num_envs, self.max_grasps)
@@ -197,23 +177,20 @@ class GraspClutterEnv(BaseEnv):
         material = sapien.physx.PhysxMaterial(0.6, 0.5, 0.0)
         for i in range(self.num_envs):
             rng = np.random.default_rng(int(self._episode_seed[i]))
-            layout, grasp_set = self._generate_scene(rng)
+            layout, grasp_set = generate_scene(self.object_set, rng, self.scene_type, self.num_objects,
+                                               self.max_grasps)
             self.layouts.append(layout)
             self.grasp_sets.append(grasp_set)
             padded, mask = grasp_set.to_padded(self.max_grasps)
             grasps[i], grasps_mask[i] = torch.from_numpy(padded), torch.from_numpy(mask)
             self.objects.append(
-                [self._build_object(obj, pose, i, j, material)
+                [build_object(self.scene, obj, pose, i, j, material)
                  for j, (obj, pose) in enumerate(zip(layout.objects, layout.object_poses))]
             )
-            surface = torch.from_numpy(sample_scene_surface(layout, rng)).float()[None]
-            generator = torch.Generator().manual_seed(int(self._episode_seed[i]))
-            keep = torch.ones(surface.shape[:2], dtype=torch.bool)
-            cloud, cloud_mask = process_point_cloud(
-                surface[..., :3], surface[..., 3:], keep, self.num_points, self.voxel_size, [generator]
-            )
-            surface_clouds.append(cloud[0])
-            surface_masks.append(cloud_mask[0])
+            cloud, cloud_mask = sample_mesh_point_cloud(layout, rng, int(self._episode_seed[i]), self.num_points,
+                                                 self.voxel_size)
+            surface_clouds.append(cloud)
+            surface_masks.append(cloud_mask)
         self.grasps = grasps.to(self.device)
         self.grasps_mask = grasps_mask.to(self.device)
         self.grasp_poses = se3.pose_to_matrix(self.grasps[..., :3], self.grasps[..., 3:7])  # (B, M, 4, 4)
@@ -223,67 +200,12 @@ class GraspClutterEnv(BaseEnv):
         self._prev_tcp_pose = None
         self._tcp_twist = torch.zeros(self.num_envs, 6, device=self.device)
 
-    def _generate_scene(self, rng: np.random.Generator) -> tuple[SceneGeometry, GraspSet]:
-        """A layout with at least one grasp candidate (redrawn from the same rng otherwise)."""
-        for _ in range(20):
-            scene_type = self.scene_type if self.scene_type != "mixed" else SCENE_TYPES[int(rng.integers(2))]
-            layout = generate_layout(self.object_set, rng, scene_type, self.num_objects)
-            # The gripper stays fully open (0.08 m): check hand collisions at that opening.
-            grasp_set = sample_grasps(layout, rng, max_grasps=self.max_grasps, finger_clearance=0.04)
-            if len(grasp_set.scores) > 0:
-                return layout, grasp_set
-        raise RuntimeError("no graspable clutter scene found in 20 layouts; check the object set")
-
-    @property
-    def _table_pose(self) -> sapien.Pose:
-        """ManiSkill's table moved so that its top is ``TABLE_TOP_CENTER``'s slab (near edge clear of the robot)."""
-        height = self.table_scene.table_height
-        return sapien.Pose(p=[float(TABLE_TOP_CENTER[0]), 0.0, -height], q=[np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)])
-
-    def _build_pedestal(self) -> None:
-        """A visual column from the floor to the robot base (the base stands below the table top)."""
-        builder = self.scene.create_actor_builder()
-        floor = -self.table_scene.table_height
-        half = (ROBOT_BASE_POSITION[2] - floor) / 2
-        material = sapien.render.RenderMaterial(base_color=[0.3, 0.3, 0.32, 1.0])
-        builder.add_box_visual(half_size=[0.12, 0.12, half], material=material)
-        builder.initial_pose = sapien.Pose(p=[float(ROBOT_BASE_POSITION[0]) - 0.04, 0.0, floor + half])
-        builder.build_kinematic(name="robot_pedestal")
-
-    def _build_object(self, obj, pose: np.ndarray, env: int, index: int, material):
-        builder = self.scene.create_actor_builder()
-        add_collision_shapes(builder, obj.shapes, material, obj.density)
-        if self.scene.can_render():
-            color = sapien.render.RenderMaterial(base_color=list(obj.color))
-            if obj.mesh_file is not None:
-                builder.add_visual_from_file(
-                    obj.mesh_file, sapien.Pose(p=obj.mesh_offset.tolist()), scale=[obj.mesh_scale] * 3
-                )
-            else:
-                for shape in obj.shapes:
-                    local = matrix_to_sapien_pose(shape.local_pose)
-                    if shape.kind == "box":
-                        builder.add_box_visual(local, half_size=shape.params, material=color)
-                    elif shape.kind == "sphere":
-                        builder.add_sphere_visual(local, radius=shape.params[0], material=color)
-                    elif shape.kind == "cylinder":
-                        builder.add_cylinder_visual(local, radius=shape.params[0], half_length=shape.params[1],
-                                                    material=color)
-                    elif shape.kind == "capsule":
-                        builder.add_capsule_visual(local, radius=shape.params[0], half_length=shape.params[1],
-                                                   material=color)
-                    else:
-                        builder.add_visual_from_file(convex_part_file(shape.vertices), local, material=color)
-        builder.set_scene_idxs([env])
-        builder.initial_pose = matrix_to_sapien_pose(pose)
-        return builder.build(name=f"env{env}-object{index}-{obj.name}")
-
     # ------------------------------------------------------------------ episodes
 
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
         with torch.device(self.device):
             b = len(env_idx)
-            self.table_scene.table.set_pose(self._table_pose)
+            self.table_scene.table.set_pose(table_pose(self.table_scene.table_height))
             # Objects back to their settled layout poses, at rest.
             for i in env_idx.tolist():
                 for actor, pose in zip(self.objects[i], self.layouts[i].object_poses):
@@ -328,102 +250,6 @@ class GraspClutterEnv(BaseEnv):
                 )
         self.target_grasp_index[env_idx] = index
 
-    # ------------------------------------------------------------------ task quantities
-
-    @property
-    def tcp_pose_matrix(self) -> torch.Tensor:
-        """``(B, 4, 4)`` TCP pose in the world frame."""
-        pose = self.agent.tcp.pose
-        return se3.pose_to_matrix(pose.p, pose.q)
-
-    @property
-    def target_grasp_pose(self) -> torch.Tensor:
-        """``(B, 4, 4)`` the target grasp (TCP at the grasp)."""
-        return self.grasp_poses[torch.arange(self.num_envs, device=self.device), self.target_grasp_index]
-
-    @property
-    def target_pregrasp_pose(self) -> torch.Tensor:
-        """``(B, 4, 4)`` the target grasp moved ``PREGRASP_DISTANCE`` back along its approach (z) axis."""
-        return pregrasp_poses(self.target_grasp_pose)
-
-    def pregrasp_distance(self) -> torch.Tensor:
-        """``(B,)`` pose distance (docs/PAPER_DETAILS.md, shared-control weights) of the TCP to the pre-grasp,
-        the smaller over the grasp and its pi-about-z twin (parallel-jaw symmetry)."""
-        return se3.symmetric_pose_distance(self.target_pregrasp_pose, self.tcp_pose_matrix,
-                                           se3.SHARED_CONTROL_ROT_WEIGHT)
-
-    def robot_in_collision(self) -> torch.Tensor:
-        """``(B,)`` bool: any robot link but the base touches something with force above threshold (with
-        ``self_contacts=False``, something other than another robot link)."""
-        if getattr(self, "_contact_links", None) is None:
-            self._contact_links = [link.name for link in self.agent.robot.get_links() if link.name != "panda_link0"]
-        forces = self.agent.robot.get_net_contact_forces(self._contact_links)
-        touching = (forces.norm(dim=-1) > self.collision_force_threshold).any(-1)
-        if not self.self_contacts and bool(touching.any()):  # a contact of links only among themselves is none
-            kinds = self.robot_contact_kinds()
-            touching = touching & torch.as_tensor([bool(k - {"self"}) for k in kinds], device=touching.device)
-        return touching
-
-    def _robot_contact_pairs(self) -> tuple[list[tuple], list[tuple[int, str]], dict[frozenset, int]]:
-        """The body pairs ``robot_contact_kinds`` watches, per sub-scene: every robot link but the base
-        against the table, each object and every other such link; with each pair's ``(sub-scene,
-        kind)`` and an index from the pair (as a set) to its position. Built once per scene."""
-        if self._contact_pairs is None:
-            links = [link for link in self.agent.robot.get_links() if link.name != "panda_link0"]
-            pairs: list[tuple] = []
-            labels: list[tuple[int, str]] = []
-            for i in range(self.num_envs):
-                bodies = [link._bodies[i] for link in links]
-                others = [(self.table_scene.table._bodies[i], "table")]
-                others += [(obj._bodies[0], "object") for obj in self.objects[i]]
-                for a, body in enumerate(bodies):
-                    pairs += [(body, other) for other, _ in others] + [(body, b) for b in bodies[a + 1:]]
-                    labels += [(i, kind) for _, kind in others] + [(i, "self")] * (len(bodies) - a - 1)
-            index = {frozenset(pair): n for n, pair in enumerate(pairs)}
-            self._contact_pairs = (pairs, labels, index)
-        return self._contact_pairs
-
-    def robot_contact_kinds(self) -> list[set[str]]:
-        """What the robot touches now, per sub-scene: a subset of ``{"table", "object", "self"}``
-        ("self": one robot link against another; the base, ``panda_link0``, is left out as in
-        ``robot_in_collision``). Read it at a step where ``robot_in_collision`` holds, to say what the
-        contact was. CPU: one pass over the contact list; GPU: one contact-pair impulse query."""
-        pairs, labels, index = self._robot_contact_pairs()
-        if self.scene.gpu_sim_enabled:
-            if self._contact_query is None:
-                self._contact_query = self.scene.px.gpu_create_contact_pair_impulse_query(pairs)
-            self.scene.px.gpu_query_contact_pair_impulses(self._contact_query)
-            touching = (self._contact_query.cuda_impulses.torch().norm(dim=-1) > 0).cpu().tolist()
-        else:
-            touching = [False] * len(pairs)
-            for contact in self.scene.px.get_contacts():
-                n = index.get(frozenset(contact.bodies))
-                if n is not None and any(np.linalg.norm(point.impulse) > 0 for point in contact.points):
-                    touching[n] = True
-        kinds: list[set[str]] = [set() for _ in range(self.num_envs)]
-        for (i, kind), hit in zip(labels, touching):
-            if hit:
-                kinds[i].add(kind)
-        return kinds
-
-    def evaluate(self) -> dict:
-        distance = self.pregrasp_distance()
-        success = distance < self.success_threshold
-        return dict(
-            success=success,
-            is_success=success,
-            collision=self.robot_in_collision(),
-            pregrasp_distance=distance,
-            target_grasp_index=self.target_grasp_index.clone(),
-            target_pregrasp_pose=se3.matrix_to_pose(self.target_pregrasp_pose),
-        )
-
-    def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
-        return 1.0 - torch.tanh(5.0 * info["pregrasp_distance"]) - info["collision"].float()
-
-    def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
-        return self.compute_dense_reward(obs, action, info) / 1.0
-
     # ------------------------------------------------------------------ stepping and observations
 
     def step(self, action):
@@ -462,37 +288,86 @@ class GraspClutterEnv(BaseEnv):
             extra = {key: value.reshape(self.num_envs, -1) for key, value in extra.items()}
         return extra
 
-    def capture_point_cloud(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Render the depth camera and process its cloud: ``(B, N, 6)``, ``(B, N)``.
-
-        Works in every observation mode (e.g. to grab a static scene cloud once per
-        scene while stepping in ``state_dict`` mode).
-        """
-        camera = self.scene.sensors["depth_camera"]
-        self.scene.update_render(update_sensors=True, update_human_render_cameras=False)
-        camera.capture()
-        images = camera.get_obs(rgb=True, depth=False, position=True, segmentation=True)
-        raw = sensor_data_to_pointcloud(
-            dict(sensor_param={"depth_camera": camera.get_params()}, sensor_data={"depth_camera": images}),
-            {"depth_camera": camera},
-        )["pointcloud"]
-        xyz = raw["xyzw"][..., :3]
-        rgb = raw["rgb"].float() / 255.0
-        seg = raw["segmentation"][..., 0]
-        keep = (seg != 0) & ~torch.isin(seg, self._robot_segmentation_ids)
-        # The resampling draws from the episode's seed: the same seed gives the same cloud.
-        seeds = self._episode_seed if self._episode_seed is not None else [0] * self.num_envs
-        generators = [torch.Generator().manual_seed(int(seed) + CLOUD_SEED_OFFSET) for seed in seeds]
-        return process_point_cloud(xyz, rgb, keep, self.num_points, self.voxel_size, generators)
-
-    @property
-    def _robot_segmentation_ids(self) -> torch.Tensor:
-        ids = [obj.entity.per_scene_id for link in self.agent.robot.get_links() for obj in link._objs]
-        return torch.as_tensor(sorted(set(ids)), device=self.device)
-
     def get_obs(self, info: dict | None = None, unflattened: bool = False):
         if self.obs_mode == "pointcloud":
             # The processed cloud lives in `extra`; ManiSkill's raw per-pixel cloud is not returned.
             info = self.get_info() if info is None else info
             return dict(agent=self._get_obs_agent(), extra=self._get_obs_extra(info))
         return super().get_obs(info, unflattened)
+
+    # ------------------------------------------------------------------ success, collision and reward
+
+    def evaluate(self) -> dict:
+        distance = self.pregrasp_distance()
+        success = distance < self.success_threshold
+        return dict(
+            success=success,
+            is_success=success,
+            collision=self.robot_in_collision(),
+            pregrasp_distance=distance,
+            target_grasp_index=self.target_grasp_index.clone(),
+            target_pregrasp_pose=se3.matrix_to_pose(self.target_pregrasp_pose),
+        )
+
+    def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        return 1.0 - torch.tanh(5.0 * info["pregrasp_distance"]) - info["collision"].float()
+
+    def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        return self.compute_dense_reward(obs, action, info) / 1.0
+
+    # ------------------------------------------------------------------ task quantities
+
+    @property
+    def tcp_pose_matrix(self) -> torch.Tensor:
+        """``(B, 4, 4)`` TCP pose in the world frame."""
+        pose = self.agent.tcp.pose
+        return se3.pose_to_matrix(pose.p, pose.q)
+
+    @property
+    def target_grasp_pose(self) -> torch.Tensor:
+        """``(B, 4, 4)`` the target grasp (TCP at the grasp)."""
+        return self.grasp_poses[torch.arange(self.num_envs, device=self.device), self.target_grasp_index]
+
+    @property
+    def target_pregrasp_pose(self) -> torch.Tensor:
+        """``(B, 4, 4)`` the target grasp moved ``PREGRASP_DISTANCE`` back along its approach (z) axis."""
+        return pregrasp_poses(self.target_grasp_pose)
+
+    def pregrasp_distance(self) -> torch.Tensor:
+        """``(B,)`` pose distance (docs/PAPER_DETAILS.md, shared-control weights) of the TCP to the pre-grasp,
+        the smaller over the grasp and its pi-about-z twin (parallel-jaw symmetry)."""
+        return se3.symmetric_pose_distance(self.target_pregrasp_pose, self.tcp_pose_matrix,
+                                           se3.SHARED_CONTROL_ROT_WEIGHT)
+
+    def robot_in_collision(self) -> torch.Tensor:
+        """``(B,)`` bool: any robot link but the base touches something with force above threshold (with
+        ``self_contacts=False``, something other than another robot link)."""
+        if getattr(self, "_contact_links", None) is None:
+            self._contact_links = [link.name for link in self.agent.robot.get_links() if link.name != BASE_LINK]
+        forces = self.agent.robot.get_net_contact_forces(self._contact_links)
+        touching = (forces.norm(dim=-1) > self.collision_force_threshold).any(-1)
+        if not self.self_contacts and bool(touching.any()):  # a contact of links only among themselves is none
+            kinds = self.robot_contact_kinds()
+            touching = touching & torch.as_tensor([bool(k - {"self"}) for k in kinds], device=touching.device)
+        return touching
+
+    def robot_contact_kinds(self) -> list[set[str]]:
+        """What the robot touches now, per sub-scene: a subset of ``{"table", "object", "self"}``
+        ("self": one robot link against another; the base, ``panda_link0``, is left out as in
+        ``robot_in_collision``). Read it at a step where ``robot_in_collision`` holds, to say what the
+        contact was. CPU: one pass over the contact list; GPU: one contact-pair impulse query."""
+        if self._contact_pairs is None:
+            self._contact_pairs = RobotContactPairs.build(self.agent.robot.get_links(), self.table_scene.table,
+                                                          self.objects)
+        return self._contact_pairs.touching_kinds(self.scene)
+
+    def capture_point_cloud(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Render the depth camera and process its cloud: ``(B, N, 6)``, ``(B, N)``.
+
+        Works in every observation mode (e.g. to grab a static scene cloud once per
+        scene while stepping in ``state_dict`` mode).
+        """
+        # The resampling draws from the episode's seed: the same seed gives the same cloud.
+        seeds = self._episode_seed if self._episode_seed is not None else [0] * self.num_envs
+        return cameras.capture_point_cloud(self.scene, self.agent.robot, seeds, self.num_points, self.voxel_size,
+                                           self.device)
