@@ -158,13 +158,9 @@ def batch(policy: RTV3Policy) -> dict:
 
 def test_config_windows_presets_and_validation():
     cfg = RTV3Config(device="cpu")
-    assert cfg.observation_delta_indices is None  # history read from observation.state_history
-    # the training cache (default): one row per sample, the policy cuts the windows (training_cache.py)
-    assert cfg.action_delta_indices is None
-    assert RTV3Config(device="cpu", use_stored_history=False).observation_delta_indices is None
-    windowed = RTV3Config(device="cpu", use_stored_history=False, training_cache=False)
-    assert windowed.observation_delta_indices == list(range(-7, 1))
-    assert windowed.action_delta_indices == list(range(12))
+    # one row per sample: the history is observation.state_history or, like the future actions, cut
+    # from the training cache (training_cache.py)
+    assert cfg.observation_delta_indices is None and cfg.action_delta_indices is None
     assert cfg.reward_delta_indices is None
     assert cfg.translation_scale == 5.0 and cfg.kl_weight == 100.0 and cfg.kl_min == 0.07
     optimizer = cfg.get_optimizer_preset()
@@ -810,16 +806,16 @@ def test_lerobot_dataset_factory_and_processors_train(tmp_path):
     register_third_party_plugins()  # what lerobot-train / lerobot-eval do first
     assert get_policy_class("rtv3") is RTV3Policy
 
-    # LeRobot's own windows (the default training cache: tests/test_training_cache.py)
-    cfg = RTV3Config(device="cpu", num_points=64, max_grasps=8, use_stored_history=False, training_cache=False)
+    # One row per sample: the policy cuts the history and the future actions from the training cache
+    # (tests/test_training_cache.py), this dataset having no observation.state_history
+    cfg = RTV3Config(device="cpu", num_points=64, max_grasps=8)
     written = _write_dataset(tmp_path / "ds", cfg)
     meta = written.meta
     assert meta.total_episodes == 2 and meta.fps == ft.FPS
     dataset = LeRobotDataset("local/rtv3_test", root=tmp_path / "ds",
                              delta_timestamps=resolve_delta_timestamps(cfg, meta))
     sample = dataset[0]
-    assert sample[ft.STATE].shape == (8, ft.STATE_DIM) and sample[ft.ACTION].shape == (12, 6)
-    assert sample[f"{ft.STATE}_is_pad"][:7].all()  # episode start: history padded
+    assert sample[ft.STATE].shape == (ft.STATE_DIM,) and sample[ft.ACTION].shape == (6,)
 
     policy = lerobot_make_policy(cfg, ds_meta=meta)
     assert isinstance(policy, RTV3Policy)
@@ -865,13 +861,12 @@ def test_lerobot_train_cli_trains_and_checkpoints(tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from lerobot.policies.factory import make_pre_post_processors
 
-    cfg = RTV3Config(device="cpu", num_points=64, max_grasps=8, use_stored_history=False)
-    _write_dataset(tmp_path / "ds", cfg, frames=16)
+    cfg = RTV3Config(device="cpu", num_points=64, max_grasps=8)
+    _write_dataset(tmp_path / "ds", cfg, frames=16)  # no observation.state_history: the training cache gives it
     args = [
         sys.executable, "-m", "lerobot.scripts.lerobot_train",
         "--dataset.repo_id=local/rtv3_test", f"--dataset.root={tmp_path / 'ds'}",
         "--policy.type=rtv3", "--policy.device=cpu",  # N = 64, M = 8 are read from the dataset features
-        "--policy.use_stored_history=false",  # this synthetic dataset has no observation.state_history
         "--policy.push_to_hub=false", "--steps=2", "--batch_size=2", "--num_workers=0", "--save_freq=2",
         f"--output_dir={tmp_path / 'out'}", "--wandb.enable=false",
     ]

@@ -1,6 +1,6 @@
-"""The rtv3 training cache (``--policy.training_cache``, policies/rtv3/training_cache.py): LeRobot loads
-one row per sample and the policy cuts the action / state windows from memory. The windows and the
-loss equal LeRobot's own windows; ``lerobot-train`` resumes from its periodic checkpoints."""
+"""The rtv3 training cache (policies/rtv3/training_cache.py): LeRobot loads one row per sample and the
+policy cuts the action / state windows from memory. The windows and the loss equal those of LeRobot's
+own windows; ``lerobot-train`` resumes from its periodic checkpoints."""
 
 from __future__ import annotations
 
@@ -29,10 +29,15 @@ def test_cached_windows_and_loss_equal_lerobots_windows(tmp_path):
     # a dataset without observation.state_history: the cache also gives the state history
     meta = _write_dataset(tmp_path / "ds", RTV3Config(device="cpu", num_points=64, max_grasps=8), frames=16).meta
     frames = [0, 1, 3, 7, 8, 14, 15, 16, 17, 25, 30, 31]  # episode starts and ends: padded windows
+    # LeRobot's own windows: T history frames of every observation key, H future actions
+    lerobot_windows = {key: [i / meta.fps for i in range(-ft.HISTORY_STEPS + 1, 1)]
+                       for key in meta.features if key.startswith("observation.")}
+    lerobot_windows[ft.ACTION] = [i / meta.fps for i in range(ft.HORIZON_STEPS)]
     losses, batches = {}, {}
     for cache in (False, True):
-        cfg = RTV3Config(device="cpu", use_stored_history=False, training_cache=cache)
-        dataset = LeRobotDataset(REPO, root=tmp_path / "ds", delta_timestamps=resolve_delta_timestamps(cfg, meta))
+        cfg = RTV3Config(device="cpu")
+        delta_timestamps = resolve_delta_timestamps(cfg, meta) if cache else lerobot_windows
+        dataset = LeRobotDataset(REPO, root=tmp_path / "ds", delta_timestamps=delta_timestamps)
         torch.manual_seed(0)
         policy = make_policy(cfg, ds_meta=meta)
         preprocessor, _ = make_pre_post_processors(cfg, dataset_stats=meta.stats)
@@ -48,12 +53,12 @@ def test_cached_windows_and_loss_equal_lerobots_windows(tmp_path):
     assert torch.allclose(losses[True], losses[False], rtol=1e-6, atol=1e-6)
 
     # A policy made without the dataset cannot cut windows: the error names the way out.
-    bare = RTV3Policy(RTV3Config(device="cpu", num_points=64, max_grasps=8, use_stored_history=False))
+    bare = RTV3Policy(RTV3Config(device="cpu", num_points=64, max_grasps=8))
     try:
         bare.forward(single)
         raise AssertionError("expected a ValueError")
     except ValueError as err:
-        assert "training_cache=false" in str(err) and "ds_meta" in str(err)
+        assert "ds_meta" in str(err)
 
 
 def test_lerobot_train_resumes_from_its_last_checkpoint(tmp_path):
@@ -65,7 +70,7 @@ def test_lerobot_train_resumes_from_its_last_checkpoint(tmp_path):
     train = [sys.executable, "-m", "lerobot.scripts.lerobot_train"]
     first = train + [
         f"--dataset.repo_id={REPO}", f"--dataset.root={tmp_path / 'ds'}", "--policy.type=rtv3", "--policy.device=cpu",
-        "--policy.use_stored_history=false", "--policy.push_to_hub=false", "--steps=2", "--batch_size=4",
+        "--policy.push_to_hub=false", "--steps=2", "--batch_size=4",
         "--num_workers=0", "--save_freq=1", f"--output_dir={out}", "--wandb.enable=false",
     ]
     run = subprocess.run(first, capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)

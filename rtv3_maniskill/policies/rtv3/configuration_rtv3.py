@@ -56,6 +56,11 @@ class RTV3ExponentialSchedulerConfig(LRSchedulerConfig):
 class RTV3Config(PreTrainedConfig):
     """RT-V3 prior: CVAE over body-twist trajectories conditioned on history, point cloud and grasps.
 
+    Training data: LeRobot loads one dataset row per sample (no ``delta_indices`` windows); the policy
+    reads the state history from the row's ``observation.state_history`` and cuts the future actions
+    (and, for a dataset without the stored history, the states) from an in-memory copy of the
+    dataset's ``action`` / ``observation.state`` columns (``training_cache.py``).
+
     Input/output structure:
         n_obs_steps: T, history length incl. the current step (docs/PAPER_DETAILS.md: 8).
         horizon: H, predicted future steps (docs/PAPER_DETAILS.md: 12).
@@ -148,16 +153,6 @@ class RTV3Config(PreTrainedConfig):
     grasp-subset augmentation) is built; ``--policy.path`` would load a saved pipeline that drops it."""
 
     # Latent variable and decoder.
-    use_stored_history: bool = True
-    """Read the history from the dataset's ``observation.state_history`` (one row per sample) instead of
-    asking LeRobot for T-frame windows of every ``observation.*`` key. Set False for datasets without it."""
-    training_cache: bool = True
-    """Training data path. True: LeRobot loads one dataset row per sample (no ``action`` / ``observation.*``
-    window) and the policy cuts the future actions (and, for datasets without ``observation.state_history``,
-    the state history) from an in-memory copy of the dataset's ``action`` / ``observation.state`` columns,
-    read once from the dataset LeRobot's factory hands it (``training_cache.py``); ~13x less data per sample
-    than LeRobot's H-frame ``action`` window, which re-reads each frame's point cloud and grasps.
-    False: LeRobot windows ``action`` (and ``observation.*`` without the stored history), as before."""
     num_maneuver_classes: int = 10
     prior_hidden_dim: int = 32
     decoder_hidden_dim: int = 128
@@ -347,22 +342,16 @@ class RTV3Config(PreTrainedConfig):
         )
 
     @property
-    def observation_delta_indices(self) -> list[int] | None:
-        """History frames ``-T+1 .. 0`` for every ``observation.*`` key — or none when the
-        dataset stores ``observation.state_history`` (then each sample is one row: ~8x less
-        data loading, since LeRobot would window the point clouds too) or with the training cache
-        (the policy cuts the history from it)."""
-        if self.use_stored_history or self.training_cache:
-            return None
-        return list(range(-self.n_obs_steps + 1, 1))
+    def observation_delta_indices(self) -> None:
+        """No history window: each sample is one dataset row (the history is its stored
+        ``observation.state_history``, or is cut from the training cache)."""
+        return None
 
     @property
-    def action_delta_indices(self) -> list[int] | None:
-        """Future actions ``a_0 .. a_{H-1}`` — or none with the training cache (the policy cuts them
-        from it by the batch's frame ``index``; see ``training_cache``)."""
-        if self.training_cache:
-            return None
-        return list(range(self.horizon))
+    def action_delta_indices(self) -> None:
+        """No action window: the policy cuts ``a_0 .. a_{H-1}`` from the training cache by the batch's
+        frame ``index`` (``training_cache.py``), ~13x less data per sample than LeRobot's H-frame window."""
+        return None
 
     @property
     def reward_delta_indices(self) -> None:

@@ -50,8 +50,8 @@ class RTV3Policy(PreTrainedPolicy):
         super().__init__(config)
         self.dataset_repo_id = training_dataset_repo_id(dataset_meta)
         """The training dataset's repo id, named by the saved model card (``None``: unknown)."""
-        # config.training_cache: the dataset's actions / states, read on the first training batch that needs them.
-        self._cache_source = dataset_meta if config.training_cache else None
+        # The training cache: the dataset's actions / states, read on the first training batch that needs them.
+        self._cache_source = dataset_meta
         self._training_cache: TrainingCache | None = None
         if not config.input_features:
             config.input_features = config.default_input_features()
@@ -188,7 +188,7 @@ class RTV3Policy(PreTrainedPolicy):
         )
 
     def training_cache(self) -> TrainingCache | None:
-        """The in-memory copy of the training dataset's actions and states (``config.training_cache``), read
+        """The in-memory copy of the training dataset's actions and states (``training_cache.py``), read
         once from the dataset LeRobot's factory handed the policy; ``None`` without one."""
         if self._training_cache is None and self._cache_source is not None:
             self._training_cache = TrainingCache.from_dataset_meta(self._cache_source)
@@ -199,11 +199,10 @@ class RTV3Policy(PreTrainedPolicy):
         cache = self.training_cache()
         if cache is None or "index" not in batch:
             raise ValueError(
-                f"training batch holds single frames ({what}) but no windows: with --policy.training_cache=true "
-                f"(the default) LeRobot loads one row per sample and the policy cuts the windows from the dataset "
-                f"it was made with, by the batch's 'index' (make the policy with make_policy(cfg, "
-                f"ds_meta=dataset.meta)); cache: {'none' if cache is None else 'yes'}, 'index' in batch: "
-                f"{'index' in batch}. Or train with --policy.training_cache=false (LeRobot windows the dataset)"
+                f"training batch holds single frames ({what}) but no windows: LeRobot loads one row per sample "
+                f"and the policy cuts the windows from the dataset it was made with, by the batch's 'index' (make "
+                f"the policy with make_policy(cfg, ds_meta=dataset.meta)); cache: "
+                f"{'none' if cache is None else 'yes'}, 'index' in batch: {'index' in batch}"
             )
         return cache, batch["index"]
 
@@ -218,16 +217,15 @@ class RTV3Policy(PreTrainedPolicy):
 
     def _training_inputs(self, batch: dict[str, Tensor]) -> RTV3Inputs:
         states = read_states(batch)
-        if states.ndim == 2 and self.config.training_cache and "index" in batch:  # single frames: cut the history
+        if states.ndim == 2 and "index" in batch:  # single frames: cut the history from the training cache
             cache, index = self._cached_frames(batch, f"'{ft.STATE}' {tuple(states.shape)}")
             states = read_states({ft.STATE: cache.state_windows(index, self.config.n_obs_steps).to(states.device)})
         if states.ndim != 3 or states.shape[1] != self.config.n_obs_steps:
             raise ValueError(
                 f"'{ft.STATE}' has shape {tuple(states.shape)}; training needs the history "
                 f"(B, {self.config.n_obs_steps}, {ft.STATE_DIM}): the dataset's '{ft.STATE_HISTORY}', or, for a "
-                f"dataset without it, the training cache (--policy.training_cache=true, a policy made with the "
-                f"dataset's metadata and batches with LeRobot's 'index') or --policy.use_stored_history=false "
-                f"--policy.training_cache=false (LeRobot then windows '{ft.STATE}')"
+                f"dataset without it, the training cache (a policy made with the dataset's metadata and batches "
+                f"with LeRobot's 'index')"
             )
         context = read_context(batch, self.config.num_points, self.config.max_grasps)
         _check_batch(states.shape[0], context.batch_size)

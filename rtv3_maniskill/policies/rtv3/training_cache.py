@@ -3,12 +3,12 @@
 ``lerobot-train`` loads every sample with ``LeRobotDataset.__getitem__``. With an ``action``
 window of H = 12 frames LeRobot reads 1 + 12 full dataset rows per sample, each with its
 point cloud and grasps (the episode's static scene context, repeated in every frame): ~13x
-the data of one row, and most of a training step on CPU. With ``RTV3Config.training_cache``
-the config asks LeRobot for no window at all (one row per sample) and the policy cuts the
-windows from this cache instead, by the batch's absolute frame ``index`` (which LeRobot's
-processor pipeline keeps). The cache holds only the ``action`` and ``observation.state``
-columns (33 floats per frame: ~1 MB for 8k frames), read once with pyarrow from the
-dataset's parquet files, and each frame's episode bounds from the dataset metadata.
+the data of one row, and most of a training step on CPU. So ``RTV3Config`` asks LeRobot for
+no window at all (one row per sample) and the policy cuts the windows from this cache
+instead, by the batch's absolute frame ``index`` (which LeRobot's processor pipeline keeps).
+The cache holds only the ``action`` and ``observation.state`` columns (33 floats per frame:
+~1 MB for 8k frames), read once with pyarrow from the dataset's parquet files, and each
+frame's episode bounds from the dataset metadata.
 
 Windows are exactly LeRobot's (``LeRobotDataset._get_query_indices``): frame indices clamped
 to the episode, ``*_is_pad`` True outside it.
