@@ -17,7 +17,8 @@ from rtv3_maniskill.shared_control.twist_utils import check_speed_limits
 
 @dataclass
 class SharedControlConfig:
-    """Settings of :class:`SharedController`. Units: m, m/s, rad/s."""
+    """Settings of :class:`~rtv3_maniskill.shared_control.shared_controller.SharedController`.
+    Units: m, m/s, rad/s; :meth:`preset` gives the named fusions."""
 
     max_linear_speed: float | None = 0.5
     """Norm limit on the executed translation velocity (m/s); None = no limit."""
@@ -71,17 +72,16 @@ class SharedControlConfig:
     the prior sees every grasp candidate at every step. A number of nats: the controller keeps a
     recursive belief over the candidates from the user's commands (each a noisy straight twist to
     its candidate's pre-grasp, on the command's observed axes; evidence decayed by ``belief_memory``)
-    and hands the prior only the candidates within this many nats of the most likely one. 1 was
-    chosen on validation goals (it lifts a translation-only user most: the prior then turns the
-    hand towards the grasp the user drives to)."""
+    and hands the prior only the candidates within this many nats of the most likely one (with
+    fewer candidates the prior turns the hand towards the grasp the user drives to)."""
     prior_covariance_scale: float = 100.0
     """Factor on the prior's step-0 covariances (Sigma_z and Gamma_z) before the gate and the
-    fusion. 1 (the paper) takes the prior as calibrated; a learned prior is calibrated on its
-    training data (`rtv3 evaluate prediction` reports its step-0 coverage) but overconfident where
-    its own closed loop leads it (on DAgger states its maximum-likelihood scale is ~20), and a larger
-    factor gives the user's command more weight (Kalman gain ``K = s Sigma_z (s Sigma_z + S_u)^-1``).
-    100 was chosen on validation goals."""
+    fusion. 1 (the paper) takes the prior as calibrated; a larger factor gives the user's command
+    more weight (Kalman gain ``K = s Sigma_z (s Sigma_z + S_u)^-1``) where the prior is overconfident,
+    e.g. on states its own closed loop leads it to (`rtv3 evaluate prediction` reports a prior's
+    step-0 coverage)."""
     mode_search_starts: int = 3
+    """Component means the mode search starts from (:func:`mode_search.mixture_mode`)."""
     mode_search_iters: int = 10
     """Most mean-shift iterations of the mode search (:func:`mode_search.mixture_mode`)."""
     mode_search_tol: float = 1e-6
@@ -91,11 +91,12 @@ class SharedControlConfig:
     def preset(cls, name: str, **overrides: Any) -> SharedControlConfig:
         """A named fusion (:data:`FUSION_PRESETS`), with ``overrides`` on top.
 
-        ``"tuned"`` (the defaults) was chosen on validation scenes so that a prior that knows the
-        scene helps every simulated user and the shipped prior loses to Direct for none;
-        ``"paper"`` is the paper's reading: the gate under the
-        class covariance at alpha 0.85, no memory of earlier commands, the prior's covariances as
-        predicted and a command's zero axes missing everywhere.
+        ``"tuned"`` (the defaults): the gate under the predictive covariance at alpha 0.99, a
+        recursive belief over the classes and over the grasp candidates, the prior's covariances
+        times 100 and a command's zero axes held still on axes the user has left (``missing_unused``);
+        ``"paper"``, the paper's reading: the gate under the class covariance at alpha 0.85, no
+        memory of earlier commands, every candidate shown, the prior's covariances as predicted and
+        a command's zero axes missing everywhere.
         """
         if name not in FUSION_PRESETS:
             raise ValueError(f"unknown fusion preset {name!r}; known: {', '.join(FUSION_PRESETS)}")
