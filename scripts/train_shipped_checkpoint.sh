@@ -1,9 +1,13 @@
 #!/usr/bin/env bash
-# How the shipped checkpoint (rtv3_maniskill/checkpoints/rtv3_grasp_clutter) is made, CPU only:
+# How the shipped checkpoint (rtv3_maniskill/checkpoints/rtv3_grasp_clutter) is made, from a clean clone,
+# CPU only (two cores):
 #
-#   0. the starting weights: the previous shipped checkpoint, trained under the earlier start
-#      distribution (git commit 3da66a5; that commit's version of this script made it, 4,400
-#      training steps). It is taken from git history, so run this in a clone with history.
+#   0. the starting weights, from scratch in three lerobot-train runs (4,400 steps, point encoder in the
+#      authors' layout, --policy.point_stem_poolings=0, as in every run below): 2,000 steps on demonstrations
+#      that go on to the grasp (rtv3 generate --end-at grasp, scenes 100000..100103); 2,100 steps from those
+#      weights on demonstrations that end at the pre-grasp (data/train, scenes 100000..100299, the README's
+#      training set); 300 more on the same data with the closed-loop regularisers every later fine-tune
+#      keeps (rotation conditioned on a sampled translation, twist noise on the history);
 #   1. planner demonstrations under the authors' protocol: starts drawn around the Panda ready
 #      pose with the authors' base placement, feasible targets (rtv3 generate, scenes
 #      100000..100599, both cores);
@@ -12,19 +16,18 @@
 #      teleoperation; at visited states the planner re-plans to the target's pre-grasp, and the
 #      stored history is the user's own motion, so the prior learns to read a goal from it;
 #   3. the two datasets merged with LeRobot's merge_datasets (rtv3 merge);
-#   4. lerobot-train fine-tunes the starting weights on the merged data at learning rate 1e-3 (free-running decoder,
-#      rotation conditioned on a sampled translation, twist noise on the history), STEPS steps,
+#   4. lerobot-train fine-tunes step 0's weights on the merged data at learning rate 1e-3 (rotation
+#      conditioned on a sampled translation, twist noise on the history), STEPS steps,
 #      checkpoints every SAVE_FREQ steps; resume an interrupted run with
 #      lerobot-train --config_path=outputs/train_v2/checkpoints/last/pretrained_model/train_config.json --resume=true
 #   5. a second fine-tune from checkpoint 500 of step 4 at learning rate 3e-4 (1,000 steps);
-#   6. checkpoint 500 of step 5 (the previous shipped prior, chosen on validation planning scenes
-#      800000..800019, never the test blocks) rolls out alone in a second DAgger round (rtv3 dagger
-#      --drivers prior, scenes 600000..600149): the planner re-plans from where the prior went;
-#   7. with 300 scenes of fresh demonstrations (the first 300 of step 1's numbering, generated
-#      again as data/train_v3_base) merged in, two fine-tunes at 3e-4 with history rotation
-#      resampling (p 0.5, "rate": the past turn replaced by a random one, so the prior reads its
-#      turn from the goal instead of continuing its own): 1,000 steps, then 1,000 more from the
-#      last checkpoint (step 1000 of the second, picked among six on validation);
+#   6. checkpoint 500 of step 5 (chosen on validation planning scenes 800000..800019, never the test
+#      blocks) rolls out alone in a second DAgger round (rtv3 dagger --drivers prior, scenes
+#      600000..600149): the planner re-plans from where the prior went;
+#   7. with step 0's 300 scenes of pre-grasp demonstrations (data/train) merged in, two fine-tunes at
+#      3e-4 with history rotation resampling (p 0.5: the past turn replaced by a random constant one, so
+#      the prior reads its turn from the goal instead of continuing its own): 1,000 steps, then 1,000
+#      more from the last checkpoint (step 1000 of the second, picked among six on validation);
 #   8. that prior (step 1000 of the second fine-tune of step 7, the previous shipped prior) rolls out
 #      in a further DAgger round (scenes 300000..300099: the prior alone twice, and the single-DoF and
 #      mode-switching users through RT-V3 with the tuned fusion), merged with 400 scenes of fresh
@@ -44,7 +47,14 @@
 #      checkpoint is the prior (no pick);
 #  11. the chosen checkpoint is copied into the package.
 # Every step is resumable or skipped when its output exists. Environment: STEPS, BATCH, SAVE_FREQ,
-# CKPT_STEP, GEN_SCENES, DAGGER_SCENES trade time for quality.
+# CKPT_STEP, GEN_SCENES, DAGGER_SCENES trade time for quality. Days of CPU time in all.
+#
+# What it reproduces is the recipe, not bit-identical weights: every step runs with today's code,
+# while the shipped weights were made round by round as the code changed (step 0's weights themselves
+# in more, smaller runs, the first of them with a teacher-forced decoder, which the code no longer
+# has), and training does not repeat bit for bit across machines. Expect numbers near those of
+# docs/RESULTS.md, not the same ones; the picks above (CKPT_STEP, the step-500 and step-1000
+# checkpoints) were made on validation scenes for the shipped run and are kept as they were.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 STEPS=${STEPS:-1500}
@@ -53,7 +63,6 @@ SAVE_FREQ=${SAVE_FREQ:-500}
 CKPT_STEP=${CKPT_STEP:-002000}
 GEN_SCENES=${GEN_SCENES:-600}
 DAGGER_SCENES=${DAGGER_SCENES:-150}
-START_COMMIT=3da66a5
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 bash scripts/setup.sh
 # LeRobot reads datasets through Hugging Face `datasets`, which keeps an uncompressed copy of each one
@@ -66,48 +75,55 @@ if [[ -z ${HF_DATASETS_CACHE:-} ]]; then
 fi
 mkdir -p data outputs
 
-init=outputs/checkpoint_$START_COMMIT
-if [[ ! -f $init/model.safetensors ]]; then
-  mkdir -p $init
-  git archive "$START_COMMIT" rtv3_maniskill/checkpoints/rtv3_grasp_clutter \
-    | tar -x --strip-components=3 -C $init
-fi
+# One lerobot-train run, skipped when OUTPUT already has checkpoints (resume an interrupted one with
+# lerobot-train --config_path=OUTPUT/checkpoints/last/pretrained_model/train_config.json --resume=true).
+train() {  # DATASET OUTPUT STEPS SAVE_FREQ [more lerobot-train flags]
+  local dataset=$1 output=$2 steps=$3 save_freq=$4
+  shift 4
+  [[ -d $output/checkpoints ]] && return 0
+  .venv/bin/lerobot-train --policy.type=rtv3 --policy.point_stem_poolings=0 "$@" \
+      --dataset.repo_id=local/rtv3_grasp_clutter --dataset.root="$dataset" \
+      --policy.push_to_hub=false --policy.device=cpu --wandb.enable=false --batch_size="$BATCH" \
+      --num_workers=1 --save_freq="$save_freq" --log_freq=100 --steps="$steps" --output_dir="$output"
+}
+regularised=(--policy.rotation_conditioning=sampled --policy.twist_noise_linear=0.05 --policy.twist_noise_angular=0.25)
+fine_tune() {  # INIT DATASET OUTPUT STEPS SAVE_FREQ [more lerobot-train flags]
+  local init=$1
+  shift
+  train "$1" "$2" "$3" "$4" --policy.init_weights_from="$init" "${regularised[@]}" "${@:5}"
+}
+demonstrations() {  # rtv3 generate flags: planner demonstrations of 16 targets per scene, 512-point clouds
+  .venv/bin/rtv3 generate --grasps-per-scene 16 --num-points 512 --workers 2 "$@"
+}
 
-.venv/bin/rtv3 generate --num-scenes "$GEN_SCENES" --output data/train_v2 --end-at pregrasp \
-    --grasps-per-scene 16 --num-points 512 --seed 1 --workers 2
-.venv/bin/rtv3 dagger --output data/dagger_direct --num-scenes "$DAGGER_SCENES" --seed 5 \
+# Step 0: the starting weights, from scratch.
+demonstrations --num-scenes 104 --output data/train_stage1 --end-at grasp --seed 1
+train data/train_stage1 outputs/train_stage1 2000 500
+demonstrations --num-scenes 300 --output data/train --end-at pregrasp --seed 1
+train data/train outputs/train_stage2 2100 500 \
+    --policy.init_weights_from=outputs/train_stage1/checkpoints/last/pretrained_model
+fine_tune outputs/train_stage2/checkpoints/last/pretrained_model data/train outputs/train_stage3 300 500
+init=outputs/train_stage3/checkpoints/last/pretrained_model
+
+demonstrations --num-scenes "$GEN_SCENES" --output data/train_v2 --end-at pregrasp --seed 1
+# The Direct-driven users do not run a prior; --policy.path sets the clouds' and grasp lists' sizes.
+.venv/bin/rtv3 dagger --policy.path "$init" --output data/dagger_direct --num-scenes "$DAGGER_SCENES" --seed 5 \
     --drivers direct:noisy,direct:laggy,direct:mode_switching,direct:single_dof,direct:low_dof \
     --targets-per-scene 4 --relabels-per-rollout 3 --workers 2
 [[ -f data/train_v2_dagger/meta/info.json ]] || \
   .venv/bin/rtv3 merge data/train_v2 data/dagger_direct --output data/train_v2_dagger
 
-# One fine-tune, skipped when OUTPUT already has checkpoints (resume an interrupted one with
-# lerobot-train --config_path=OUTPUT/checkpoints/last/pretrained_model/train_config.json --resume=true).
-fine_tune() {  # INIT DATASET OUTPUT STEPS SAVE_FREQ [extra lerobot-train flags]
-  local init=$1 dataset=$2 output=$3 steps=$4 save_freq=$5
-  shift 5
-  [[ -d $output/checkpoints ]] && return 0
-  .venv/bin/lerobot-train --policy.type=rtv3 --policy.init_weights_from="$init" \
-      --policy.point_stem_poolings=0 --policy.rotation_conditioning=sampled \
-      --policy.twist_noise_linear=0.05 --policy.twist_noise_angular=0.25 "$@" \
-      --dataset.repo_id=local/rtv3_grasp_clutter --dataset.root="$dataset" \
-      --policy.push_to_hub=false --policy.device=cpu --wandb.enable=false --batch_size="$BATCH" \
-      --num_workers=1 --save_freq="$save_freq" --log_freq=100 --steps="$steps" --output_dir="$output"
-}
-
 fine_tune "$init" data/train_v2_dagger outputs/train_v2 "$STEPS" "$SAVE_FREQ"
-# Stage 2: from checkpoint 500 of stage 1 (the best of 500 / 1,000 / 1,500 on validation), the same
+# Step 5: from checkpoint 500 of step 4 (the best of 500 / 1,000 / 1,500 on validation), the same
 # data at learning rate 3e-4.
 fine_tune outputs/train_v2/checkpoints/000500/pretrained_model data/train_v2_dagger outputs/train_v2_lowlr \
     1000 "$SAVE_FREQ" --policy.optimizer_lr=0.0003
 
 previous=outputs/train_v2_lowlr/checkpoints/000500/pretrained_model
-.venv/bin/rtv3 generate --num-scenes 300 --output data/train_v3_base --end-at pregrasp \
-    --grasps-per-scene 16 --num-points 512 --seed 1 --workers 2
 .venv/bin/rtv3 dagger --policy.path "$previous" --output data/dagger_prior --num-scenes "$DAGGER_SCENES" --seed 6 \
     --drivers prior --targets-per-scene 4 --relabels-per-rollout 3 --workers 2
 [[ -f data/train_v3/meta/info.json ]] || \
-  .venv/bin/rtv3 merge data/train_v3_base data/dagger_prior --output data/train_v3
+  .venv/bin/rtv3 merge data/train data/dagger_prior --output data/train_v3
 
 resampled=(--policy.optimizer_lr=0.0003 --policy.history_rotation_resample_prob=0.5)
 fine_tune "$previous" data/train_v3 outputs/train_v3 1000 250 "${resampled[@]}"
@@ -115,8 +131,7 @@ fine_tune outputs/train_v3/checkpoints/001000/pretrained_model data/train_v3 out
     "${resampled[@]}"
 
 previous=outputs/train_v3_long/checkpoints/001000/pretrained_model
-.venv/bin/rtv3 generate --num-scenes 400 --output data/train_s3 --end-at pregrasp \
-    --grasps-per-scene 16 --num-points 512 --seed 3 --workers 2
+demonstrations --num-scenes 400 --output data/train_s3 --end-at pregrasp --seed 3
 .venv/bin/rtv3 dagger --policy.path "$previous" --output data/dagger_s3 --num-scenes 100 --seed 3 \
     --drivers prior,rtv3:single_dof,rtv3:mode_switching,prior --targets-per-scene 4 --relabels-per-rollout 3 \
     --workers 2
@@ -150,4 +165,4 @@ card=$(mktemp)
 cp rtv3_maniskill/checkpoints/rtv3_grasp_clutter/README.md "$card"  # the model card states the measured numbers
 rm -rf rtv3_maniskill/checkpoints/rtv3_grasp_clutter
 cp -r "$ckpt" rtv3_maniskill/checkpoints/rtv3_grasp_clutter
-cp "$card" rtv3_maniskill/checkpoints/rtv3_grasp_clutter/README.md
+install -m 644 "$card" rtv3_maniskill/checkpoints/rtv3_grasp_clutter/README.md
