@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from rtv3_maniskill import features, se3
-from rtv3_maniskill.benchmarks import outcomes, planning, prediction
+from rtv3_maniskill.benchmarks import outcomes, planning, planning_records, prediction
+from rtv3_maniskill.benchmarks.planning_success import is_planning_success, planning_distance, trace_step
 from rtv3_maniskill.cli import main
 
 NUM_POINTS, MAX_GRASPS = 256, 16
@@ -183,22 +184,22 @@ def test_prediction_refuses_a_policy_of_another_context_size(tiny_dataset, tmp_p
 
 def test_planning_success_rule_uses_the_pregrasp_its_twin_and_threshold():
     grasps = _random_poses((3,), seed=3)
-    pre = planning.pregrasp_poses(grasps)
+    pre = features.pregrasp_poses(grasps)
     # The pre-grasp is 5 cm back along the grasp's own approach (z) axis.
     torch.testing.assert_close(pre[:, :3, 3], grasps[:, :3, 3] - 0.05 * grasps[:, :3, 2])
-    d = planning.planning_distance(pre[0], grasps)
+    d = planning_distance(pre[0], grasps)
     assert d[0] < 1e-9 and d[1] > 0.05
     # Parallel-jaw twin: the pre-grasp rotated by pi about its z axis is the same goal.
-    assert planning.planning_distance(se3.rotate_about_z(pre[0], math.pi), grasps)[0] < 1e-9
+    assert planning_distance(se3.rotate_about_z(pre[0], math.pi), grasps)[0] < 1e-9
     # Threshold 0.2 on L1 translation + (0.3/pi) * L1 Euler, strict.
     near = pre[0] @ _offset(x=0.19)
-    assert planning.planning_distance(near, grasps)[0] == pytest.approx(0.19)
-    assert bool(planning.is_planning_success(planning.planning_distance(near, grasps)[0]))
-    assert not bool(planning.is_planning_success(planning.planning_distance(pre[0] @ _offset(x=0.21), grasps)[0]))
-    assert not bool(planning.is_planning_success(0.2))
+    assert planning_distance(near, grasps)[0] == pytest.approx(0.19)
+    assert bool(is_planning_success(planning_distance(near, grasps)[0]))
+    assert not bool(is_planning_success(planning_distance(pre[0] @ _offset(x=0.21), grasps)[0]))
+    assert not bool(is_planning_success(0.2))
     # Rotation: pi/2 about z costs 0.3/pi * pi/2 = 0.15 (success); the twin is pi/2 away too.
-    quarter = planning.planning_distance(pre[0] @ _offset(rz=math.pi / 2), grasps)[0]
-    assert quarter == pytest.approx(0.15) and bool(planning.is_planning_success(quarter))
+    quarter = planning_distance(pre[0] @ _offset(rz=math.pi / 2), grasps)[0]
+    assert quarter == pytest.approx(0.15) and bool(is_planning_success(quarter))
     # Under the shared-control weight (0.6/pi) the same pose would not count as reached (0.3 > 0.1): different rule.
     assert se3.pose_distance(pre[0], pre[0] @ _offset(rz=math.pi / 2),
                              se3.SHARED_CONTROL_ROT_WEIGHT) == pytest.approx(0.3)
@@ -210,27 +211,27 @@ def test_planning_success_rule_uses_the_pregrasp_its_twin_and_threshold():
 
 def test_trial_trace_splits_the_error_into_translation_and_rotation():
     grasp = _random_poses((1,), seed=4)[0]
-    pre = planning.pregrasp_poses(grasp)
+    pre = features.pregrasp_poses(grasp)
     twist = torch.tensor([0.3, 0.0, 0.4, 0.0, 0.0, 1.2])
     # 3 cm off along the pre-grasp's x and 30 deg about its z axis (the twin is 150 deg away).
-    row = planning.trace_step(7, pre @ _offset(x=0.03) @ _offset(rz=math.radians(30)), grasp, twist, 0.5, False)
+    row = trace_step(7, pre @ _offset(x=0.03) @ _offset(rz=math.radians(30)), grasp, twist, 0.5, False)
     assert row["step"] == 7 and row["distance"] == 0.5 and row["collision"] == 0.0
     assert row["translation_error"] == pytest.approx(0.03)
     assert row["rotation_error_deg"] == pytest.approx(30.0)
     assert row["linear_speed"] == pytest.approx(0.5) and row["angular_speed"] == pytest.approx(1.2)
     # The parallel-jaw twin (pi about z) is the same goal: zero rotation error there.
-    twin = planning.trace_step(1, se3.rotate_about_z(pre, math.pi), grasp, twist, 0.0, True)
+    twin = trace_step(1, se3.rotate_about_z(pre, math.pi), grasp, twist, 0.0, True)
     assert twin["rotation_error_deg"] == pytest.approx(0.0, abs=1e-6) and twin["collision"] == 1.0
 
 
 def test_context_mask_keeps_only_the_target():
     mask = torch.tensor([[1.0, 1.0, 1.0, 0.0]])
-    assert planning.context_mask(mask, 1, "target").tolist() == [[0.0, 1.0, 0.0, 0.0]]
-    assert planning.context_mask(mask, 1, "all").tolist() == mask.tolist()
+    assert features.context_mask(mask, 1, "target").tolist() == [[0.0, 1.0, 0.0, 0.0]]
+    assert features.context_mask(mask, 1, "all").tolist() == mask.tolist()
     with pytest.raises(ValueError, match="not a valid candidate"):
-        planning.context_mask(mask, 3, "target")
+        features.context_mask(mask, 3, "target")
     with pytest.raises(ValueError, match="unknown context mode"):
-        planning.context_mask(mask, 1, "nearest")
+        features.context_mask(mask, 1, "nearest")
 
 
 # ----------------------------------------------------------------------------- planning: closed loop
@@ -280,7 +281,7 @@ class _PreGraspOracle:
         g = obs[features.GRASPS][0, visible[0]].double()
         state = obs[features.STATE][0].double()
         tcp = se3.pose_to_matrix(state[features.EE_POS], state[features.EE_QUAT])
-        pre = planning.pregrasp_poses(se3.pose_to_matrix(g[:3], g[3:7]))
+        pre = features.pregrasp_poses(se3.pose_to_matrix(g[:3], g[3:7]))
         twin = se3.rotate_about_z(pre, math.pi)
         goal = (pre if se3.so3_log(tcp[:3, :3].T @ pre[:3, :3]).norm()
                 <= se3.so3_log(tcp[:3, :3].T @ twin[:3, :3]).norm() else twin)
@@ -300,7 +301,7 @@ def test_a_controller_that_reaches_the_pregrasp_counts_as_success(tmp_path):
 
 
 def test_planning_trials_resume_after_a_torn_row_and_summary_leaves_out_missing_starts(tmp_path):
-    trials = planning.trials_store(tmp_path, {"seed": 9})
+    trials = planning_records.trials_store(tmp_path, {"seed": 9})
     base = dict(start_distance="0.5", final_distance="0.1", min_distance="0.1", reached_grasp=2, context_grasps=1,
                 start_attempts=1, wall_time_s="1.0")
     trials.append(dict(base, scene_seed=7, grasp_index=2, outcome="success", steps=40))
@@ -309,19 +310,19 @@ def test_planning_trials_resume_after_a_torn_row_and_summary_leaves_out_missing_
     path = tmp_path / "planning_trials.csv"
     with open(path, "a") as f:
         f.write("7,4,collis")  # killed mid-write
-    resumed = planning.trials_store(tmp_path, {"seed": 9})
+    resumed = planning_records.trials_store(tmp_path, {"seed": 9})
     assert (7, 2) in resumed and (7, 3) in resumed and (7, 4) not in resumed
     resumed.append(dict(base, scene_seed=7, grasp_index=4, outcome="timeout", steps=150))
     resumed.close()
-    rows = planning.read_trials(path)
+    rows = planning_records.read_trials(path)
     assert [(int(r["grasp_index"]), r["outcome"]) for r in rows] == [(2, "success"), (3, "no_start_pose"),
                                                                      (4, "timeout")]
-    summary = planning.summarize(rows)
+    summary = planning_records.summarize(rows)
     assert summary["trials"] == 2 and summary["no_start_pose"] == 1
     assert (summary["SR"], summary["CR"], summary["TOR"]) == (0.5, 0.0, 0.5)
     assert summary["mean_steps_success"] == 40.0
     with pytest.raises(ValueError, match="other settings"):
-        planning.trials_store(tmp_path, {"seed": 10})
+        planning_records.trials_store(tmp_path, {"seed": 10})
 
 
 def test_step0_calibration_of_a_known_gaussian():

@@ -12,8 +12,7 @@ import torch
 
 import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
 from rtv3_maniskill import features, se3
-from rtv3_maniskill.benchmarks.planning import context_mask
-from rtv3_maniskill.features import PREGRASP_DISTANCE
+from rtv3_maniskill.features import PREGRASP_DISTANCE, context_mask
 from rtv3_maniskill.policies.rtv3 import load_policy
 
 

@@ -25,6 +25,10 @@ Protocol:
   ``timeout`` after 150 steps (7.5 s). Trials without a collision-free start pose are logged
   as ``no_start_pose`` and left out of the rates.
 
+The success rule is :mod:`~rtv3_maniskill.benchmarks.planning_success`, the records
+:mod:`~rtv3_maniskill.benchmarks.planning_records`, the NeoSS command
+:mod:`~rtv3_maniskill.benchmarks.straight_to_pregrasp`.
+
 Outputs in ``output``: ``planning_trials.csv`` (one row per trial, appended and flushed as it
 finishes; a rerun skips finished (scene, grasp) rows), ``planning_summary.json`` and
 ``planning_config.json`` (a resumed run must use the same settings).
@@ -35,93 +39,44 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
+from tqdm import tqdm
 
-from rtv3_maniskill import features, se3
-from rtv3_maniskill.benchmarks.outcomes import CONTACT_KINDS, OUTCOMES, describe_contact, trial_outcome
-from rtv3_maniskill.features import CONTEXT_MODES, GRIPPER_OPEN, context_mask, pregrasp_poses
-from rtv3_maniskill.records import SCENE_SEED_STRIDE, RecordStore, scene_seeds, select_targets
+from rtv3_maniskill import ENV_ID, features
+from rtv3_maniskill.benchmarks.outcomes import describe_contact, trial_outcome
+from rtv3_maniskill.benchmarks.planning_records import NO_START_POSE, scene_index, summarize, trials_store
+from rtv3_maniskill.benchmarks.planning_success import (
+    PLANNING_SUCCESS_THRESHOLD,
+    is_planning_success,
+    planning_distance,
+    trace_step,
+)
+from rtv3_maniskill.benchmarks.straight_to_pregrasp import StraightToPregrasp
+from rtv3_maniskill.features import CONTEXT_MODES, GRIPPER_OPEN, context_mask
+from rtv3_maniskill.policies.rtv3.checkpoints import load_policy, resolve_checkpoint
+from rtv3_maniskill.records import SCENE_SEED_STRIDE, scene_seeds, select_targets
+from rtv3_maniskill.robot.neo_qp import NeoSafetyFilter
+from rtv3_maniskill.robot.planner import PandaPlanner
+from rtv3_maniskill.robot.starts import random_start_configuration
 
-PLANNING_SUCCESS_THRESHOLD = 0.2
-"""Pose distance (m + (0.3/pi) rad, L1) below which a pre-grasp counts as reached (docs/PAPER_DETAILS.md)."""
 PLANNING_MAX_STEPS = 150
 """7.5 s at 20 Hz."""
 TARGET_SALT = 29
 """Salt of the seeded target choice (:func:`rtv3_maniskill.records.select_targets`) of planning runs."""
 MAX_GRASPS_GUESS = 16
 """Progress-bar estimate of the targets per scene when every grasp is a target."""
-NO_START_POSE = "no_start_pose"
 PLANNERS = ("policy", "neoss")
 POINT_CLOUD_SOURCES = ("rendered", "mesh")
-TRIAL_FIELDS = (
-    "scene_seed", "grasp_index", "outcome", "steps", "start_distance", "final_distance", "min_distance",
-    "reached_grasp", "context_grasps", "start_attempts", "wall_time_s", "contact",
-)
 PAPER_TABLE1_FULL = {"SR": 0.904, "CR": 0.079, "TOR": 0.017}
 
 
-# ----------------------------------------------------------------------------- success rule
-
-
-def planning_distance(tcp_pose: torch.Tensor, grasp_poses: torch.Tensor) -> torch.Tensor:
-    """Distance ``(..., M)`` of the TCP ``(..., 4, 4)`` to each grasp's pre-grasp ``(..., M, 4, 4)``.
-
-    The paper's pose distance with the planning rotation weight 0.3/pi, ``E = T_pre^-1 T_tcp``,
-    the smaller of the pre-grasp and its pi-about-z twin (parallel-jaw symmetry).
-    """
-    if tcp_pose.shape[-2:] != (4, 4) or grasp_poses.ndim < 3 or grasp_poses.shape[-2:] != (4, 4):
-        raise ValueError(
-            f"need tcp_pose (..., 4, 4) and grasp_poses (..., M, 4, 4), "
-            f"got {tuple(tcp_pose.shape)}, {tuple(grasp_poses.shape)}"
-        )
-    target = pregrasp_poses(grasp_poses)
-    return se3.symmetric_pose_distance(target, tcp_pose[..., None, :, :].to(target.dtype), se3.PLANNING_ROT_WEIGHT)
-
-
-def trace_step(step: int, tcp_pose: torch.Tensor, grasp_pose: torch.Tensor, twist: torch.Tensor,
-               distance: float, collision: bool) -> dict[str, float]:
-    """One row of a trial trace: the TCP's translation (m) and rotation (deg) error to the grasp's
-    pre-grasp (the nearer of it and its pi-about-z twin), the commanded speeds (m/s, rad/s), and
-    how well the command points at that pre-grasp: the cosine of ``v`` and of ``w`` with the two
-    halves of ``T_tcp^-1 T_pre`` (its translation and its rotation vector, TCP frame; +1 = straight
-    at it, -1 = away). The rotation error splits into the angle between the two approach (z) axes
-    and the roll about the approach (the twist part of a swing-twist split, deg); ``tcp_height`` is
-    the TCP's world z (m, the table top is 0)."""
-    from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
-
-    tcp = tcp_pose.double()
-    aimed = torch.from_numpy(canonicalize_symmetric(grasp_pose.double().numpy()[None], tcp.numpy())[0])
-    to_target = se3.relative_transform(tcp, pregrasp_poses(aimed))  # the pre-grasp in the TCP frame
-    straight = torch.cat([to_target[:3, 3], se3.so3_log(to_target[:3, :3])])
-    command = twist.double().reshape(6)
-
-    def cosine(a: torch.Tensor, b: torch.Tensor) -> float:
-        return float(torch.dot(a, b) / (a.norm() * b.norm()).clamp_min(1e-12))
-
-    quat = se3.matrix_to_quat(to_target[:3, :3])  # wxyz
-    roll = 2.0 * math.atan2(float(quat[3]), float(quat[0]))
-    roll = (roll + math.pi) % (2.0 * math.pi) - math.pi
-    return dict(step=step, distance=distance, translation_error=float(straight[:3].norm()),
-                rotation_error_deg=math.degrees(float(straight[3:].norm())),
-                approach_error_deg=math.degrees(math.acos(max(-1.0, min(1.0, float(to_target[2, 2]))))),
-                roll_error_deg=abs(math.degrees(roll)), tcp_height=float(tcp[2, 3]),
-                linear_speed=float(command[:3].norm()), angular_speed=float(command[3:].norm()),
-                linear_alignment=cosine(command[:3], straight[:3]), angular_alignment=cosine(command[3:], straight[3:]),
-                collision=float(collision))
-
-
-def is_planning_success(distance: torch.Tensor | float, threshold: float = PLANNING_SUCCESS_THRESHOLD) -> torch.Tensor:
-    """``distance < threshold`` (strict), elementwise."""
-    return torch.as_tensor(distance) < threshold
-
-
-# ----------------------------------------------------------------------------- trials
+# ----------------------------------------------------------------------------- settings
 
 
 @dataclass
@@ -173,8 +128,6 @@ class PlanningConfig:
 
     def fingerprint(self) -> dict[str, Any]:
         """Settings that change a trial's outcome: a resumed run must match them."""
-        from rtv3_maniskill.policies.rtv3.checkpoints import resolve_checkpoint
-
         return dict(
             seed=self.seed, context=self.context, point_cloud=self.point_cloud, scene_type=self.scene_type,
             max_steps=self.max_steps, threshold=self.threshold, start_pose_attempts=self.start_pose_attempts,
@@ -187,86 +140,7 @@ class PlanningConfig:
         )
 
 
-def _is_complete_trial(row: dict[str, str]) -> bool:
-    """A trial row with every column a finished trial writes (others are torn)."""
-    if row["outcome"] not in (*OUTCOMES, NO_START_POSE) or row["wall_time_s"] == "":
-        return False
-    try:
-        int(row["scene_seed"]), int(row["grasp_index"]), int(row["steps"])
-    except ValueError:
-        return False
-    return True
-
-
-def trials_store(output: Path, settings: dict[str, Any] | None) -> RecordStore:
-    """``planning_trials.csv`` (one row per finished trial) guarded by ``planning_config.json``."""
-    return RecordStore(output / "planning_trials.csv", TRIAL_FIELDS, ("scene_seed", "grasp_index"), settings,
-                       settings_path=output / "planning_config.json", is_complete=_is_complete_trial)
-
-
-def read_trials(path: Path) -> list[dict[str, str]]:
-    """Complete rows of a trials file (a torn or foreign line is skipped)."""
-    return RecordStore.read(path, TRIAL_FIELDS, _is_complete_trial)
-
-
-def summarize(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
-    """SR / CR / TOR over the trials with a start pose (None without any), their counts, mean steps of successes."""
-    rows = list(rows)
-    counts = {o: sum(1 for r in rows if r["outcome"] == o) for o in OUTCOMES}
-    trials = sum(counts.values())
-    success_steps = [int(r["steps"]) for r in rows if r["outcome"] == "success"]
-    rate = (lambda k: counts[k] / trials) if trials else (lambda k: None)
-    return dict(
-        trials=trials,
-        **{k: v for k, v in counts.items()},
-        no_start_pose=sum(1 for r in rows if r["outcome"] == NO_START_POSE),
-        SR=rate("success"),
-        CR=rate("collision"),
-        TOR=rate("timeout"),
-        mean_steps_success=float(np.mean(success_steps)) if success_steps else None,
-        collisions_with={k: sum(1 for r in rows if r["outcome"] == "collision" and k in r.get("contact", "").split("+"))
-                         for k in CONTACT_KINDS},
-    )
-
-
-SCENE_FIELDS = ("scene_seed", "valid_grasps")
-
-
-def scene_index(output: Path, settings: dict[str, Any]) -> RecordStore:
-    """``planning_scenes.csv``: the valid grasp indices (space-separated) of every scene built so
-    far, so that a resumed run picks the same targets without building finished scenes again."""
-    return RecordStore(output / "planning_scenes.csv", SCENE_FIELDS, ("scene_seed",), settings)
-
-
 # ----------------------------------------------------------------------------- running
-
-
-class StraightToPregrasp:
-    """The NeoSS baseline's command: the straight body twist ``se3_log(T_cur^-1 T_pre)`` to the nearer
-    twin of the visible grasp's pre-grasp (one grasp: ``context="target"``), clipped to the speed
-    limits; the damper in the controller keeps it out of the scene. Has the policy calls the
-    benchmark makes (``reset``, ``select_action``) and the sizes it builds the env with."""
-
-    def __init__(self, max_linear_speed: float = 0.3, max_angular_speed: float = 1.2) -> None:
-        from types import SimpleNamespace
-
-        from rtv3_maniskill.shared_control.oracle_prior import OraclePrior
-
-        self._prior = OraclePrior(max_linear_speed=max_linear_speed, max_angular_speed=max_angular_speed)
-        self.config = SimpleNamespace(num_points=features.DEFAULT_NUM_POINTS, max_grasps=features.DEFAULT_MAX_GRASPS)
-
-    def reset(self) -> None:
-        """Stateless."""
-
-    def select_action(self, observation: dict[str, torch.Tensor]) -> torch.Tensor:
-        """``(1, 6)`` straight twist to the first visible grasp's pre-grasp."""
-        grasps = features.unflatten(features.GRASPS, observation[features.GRASPS])[0].double()
-        visible = torch.nonzero(observation[features.GRASPS_MASK][0] > 0.5).flatten()
-        if len(visible) == 0:
-            raise ValueError("the NeoSS planner needs a visible target grasp (context='target')")
-        grasp = se3.pose_to_matrix(grasps[visible[0], :3], grasps[visible[0], 3:7])
-        self._prior.set_goals(pregrasp_poses(grasp)[None])
-        return self._prior.straight_twists(observation)[:, 0].float()
 
 
 class PlanningBenchmark:
@@ -281,8 +155,6 @@ class PlanningBenchmark:
         self._cloud: tuple[torch.Tensor, torch.Tensor] | None = None
         self.safety_filter = None
         if config.planner == "neoss":
-            from rtv3_maniskill.robot.neo_qp import NeoSafetyFilter
-
             self.safety_filter = NeoSafetyFilter()
 
     @property
@@ -297,10 +169,6 @@ class PlanningBenchmark:
         return self.env.unwrapped
 
     def _make_env(self):
-        import gymnasium as gym
-
-        from rtv3_maniskill import ENV_ID
-
         config, policy = self.config, self.policy
         return gym.make(
             ENV_ID,
@@ -318,8 +186,6 @@ class PlanningBenchmark:
 
     def load_scene(self, scene_seed: int) -> list[int]:
         """Build the scene of ``scene_seed`` (reconfigure); returns its valid grasp indices."""
-        from rtv3_maniskill.robot.planner import PandaPlanner
-
         self.env.reset(seed=scene_seed, options=dict(reconfigure=True))
         self.scene_seed = scene_seed
         self.planner = PandaPlanner(self.base.layouts[0])
@@ -348,8 +214,6 @@ class PlanningBenchmark:
 
         Start poses already within the success threshold of a context grasp are redrawn.
         """
-        from rtv3_maniskill.robot.starts import random_start_configuration
-
         rng = np.random.default_rng([self.config.seed, int(self.scene_seed), grasp])
         kin = self.planner.kin
         for attempt in range(1, self.config.start_pose_attempts + 1):
@@ -387,6 +251,7 @@ class PlanningBenchmark:
             return row
         obs, _ = self.env.reset(options=dict(reconfigure=False, init_qpos=q_start, target_grasp_index=grasp))
         if self.config.planner == "neoss":  # a reset rebuilds the controllers: attach the damper again
+            # Imported here: the twist controller module loads ManiSkill, which only a neoss run needs.
             from rtv3_maniskill.robot.twist_controller import attach_safety_filters, target_object_index
 
             self.safety_filter.reset(self.base.layouts[0], target_object=target_object_index(self.env))
@@ -432,10 +297,6 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
 
     ``policy`` overrides loading ``config.policy_path``.
     """
-    from tqdm import tqdm
-
-    from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
-
     torch.set_num_threads(1)
     if policy is None and config.planner == "neoss":
         policy = StraightToPregrasp()
