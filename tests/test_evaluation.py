@@ -12,9 +12,17 @@ import pytest
 import torch
 
 from rtv3_maniskill import features, se3
-from rtv3_maniskill.benchmarks import outcomes, planning, planning_records, prediction
+from rtv3_maniskill.benchmarks import (
+    held_out_windows,
+    outcomes,
+    planning,
+    planning_records,
+    prediction,
+    prediction_metrics,
+)
 from rtv3_maniskill.benchmarks.planning_success import is_planning_success, planning_distance, trace_step
 from rtv3_maniskill.cli import main
+from rtv3_maniskill.twist_mixture import TwistMixture
 
 NUM_POINTS, MAX_GRASPS = 256, 16
 GEN_ARGS = ["--num-points", str(NUM_POINTS), "--max-grasps", str(MAX_GRASPS), "--context", "mesh",
@@ -38,11 +46,11 @@ def _offset(x: float = 0.0, rz: float = 0.0) -> torch.Tensor:
 
 def test_metric_is_zero_for_a_perfect_prediction_and_scales_known_offsets():
     gt = _random_poses((4, 12))
-    assert prediction.displacement_errors(gt, gt).abs().max() < 1e-9
+    assert prediction_metrics.displacement_errors(gt, gt).abs().max() < 1e-9
     # A constant 1 cm offset along x (in the ground-truth frame: E = T_gt^-1 T_pred) costs 10.0 at every step.
-    errors = prediction.displacement_errors(gt, gt @ _offset(x=0.01))
+    errors = prediction_metrics.displacement_errors(gt, gt @ _offset(x=0.01))
     torch.testing.assert_close(errors, torch.full((4, 12), 10.0, dtype=torch.float64))
-    ade, fde = prediction.ade_fde(errors)
+    ade, fde = prediction_metrics.ade_fde(errors)
     torch.testing.assert_close(ade, torch.full((4,), 10.0, dtype=torch.float64))
     torch.testing.assert_close(fde, torch.full((4,), 10.0, dtype=torch.float64))
     # World-frame 1 cm shift of poses with identity rotation: the same 10.0.
@@ -50,15 +58,15 @@ def test_metric_is_zero_for_a_perfect_prediction_and_scales_known_offsets():
                                torch.rand(3, 4, 3, dtype=torch.float64))
     shifted = level.clone()
     shifted[..., 0, 3] += 0.01
-    torch.testing.assert_close(prediction.displacement_errors(level, shifted),
+    torch.testing.assert_close(prediction_metrics.displacement_errors(level, shifted),
                                torch.full((3, 4), 10.0, dtype=torch.float64))
     # Rotation is weighted by 0.3/pi per rad (planning weights).
-    rot_err = prediction.displacement_errors(gt, gt @ _offset(rz=0.1))
+    rot_err = prediction_metrics.displacement_errors(gt, gt @ _offset(rz=0.1))
     torch.testing.assert_close(rot_err, torch.full((4, 12), 1000 * 0.3 / math.pi * 0.1, dtype=torch.float64))
     with pytest.raises(ValueError, match="NaN"):
-        prediction.displacement_errors(gt, torch.full_like(gt, float("nan")))
+        prediction_metrics.displacement_errors(gt, torch.full_like(gt, float("nan")))
     with pytest.raises(ValueError, match="4, 4"):
-        prediction.displacement_errors(gt[..., :3, :], gt)
+        prediction_metrics.displacement_errors(gt[..., :3, :], gt)
 
 
 def test_best_of_mode_takes_the_minimum_most_likely_the_argmax_class():
@@ -69,37 +77,37 @@ def test_best_of_mode_takes_the_minimum_most_likely_the_argmax_class():
     growing[:, 1, -1] = gt[:, -1] @ _offset(x=0.05)
     growing[:, 2] = gt @ _offset(x=0.01)
     log_prior = torch.log(torch.tensor([[0.2, 0.1, 0.7]], dtype=torch.float64))
-    m = prediction.mode_metrics(gt, growing, log_prior)
+    m = prediction_metrics.mode_metrics(gt, growing, log_prior)
     torch.testing.assert_close(m["ade_bom"], torch.tensor([50.0 / 12], dtype=torch.float64))  # mode 1
     torch.testing.assert_close(m["fde_bom"], torch.tensor([10.0], dtype=torch.float64))  # mode 2: minimised separately
     torch.testing.assert_close(m["ade_ml"], torch.tensor([10.0], dtype=torch.float64))
     torch.testing.assert_close(m["fde_ml"], torch.tensor([10.0], dtype=torch.float64))
     # Most likely = mode 0 now: ML errors follow the prior, BoM does not.
-    m0 = prediction.mode_metrics(gt, growing, log_prior[:, [2, 1, 0]])
+    m0 = prediction_metrics.mode_metrics(gt, growing, log_prior[:, [2, 1, 0]])
     torch.testing.assert_close(m0["ade_ml"], torch.tensor([20.0], dtype=torch.float64))
     assert m0["ade_bom"] == m["ade_bom"] and bool((m0["ade_bom"] <= m0["ade_ml"]).all())
     with pytest.raises(ValueError, match=r"\(B, K\)"):
-        prediction.mode_metrics(gt, growing, log_prior[:, :2])
+        prediction_metrics.mode_metrics(gt, growing, log_prior[:, :2])
 
 
 def test_scene_seed_selection_rules():
     seeds = [5, 3, 3, 1, 2, 4]
-    assert prediction.select_scene_seeds(seeds, seed_range=(2, 4)) == [2, 3]
-    assert prediction.select_scene_seeds(seeds, last_fraction=0.2) == [5]  # ceil(0.2 * 5) = 1 scene
-    assert prediction.select_scene_seeds(seeds, last_fraction=0.5) == [3, 4, 5]
-    assert prediction.select_scene_seeds(seeds, all_scenes=True) == [1, 2, 3, 4, 5]
-    assert prediction.parse_seed_range("100:200") == (100, 200)
+    assert held_out_windows.select_scene_seeds(seeds, seed_range=(2, 4)) == [2, 3]
+    assert held_out_windows.select_scene_seeds(seeds, last_fraction=0.2) == [5]  # ceil(0.2 * 5) = 1 scene
+    assert held_out_windows.select_scene_seeds(seeds, last_fraction=0.5) == [3, 4, 5]
+    assert held_out_windows.select_scene_seeds(seeds, all_scenes=True) == [1, 2, 3, 4, 5]
+    assert held_out_windows.parse_seed_range("100:200") == (100, 200)
     with pytest.raises(ValueError, match="exactly one"):
-        prediction.select_scene_seeds(seeds)
+        held_out_windows.select_scene_seeds(seeds)
     with pytest.raises(ValueError, match="exactly one"):
-        prediction.select_scene_seeds(seeds, seed_range=(0, 1), all_scenes=True)
+        held_out_windows.select_scene_seeds(seeds, seed_range=(0, 1), all_scenes=True)
     with pytest.raises(ValueError, match="no episode has a scene seed"):
-        prediction.select_scene_seeds(seeds, seed_range=(10, 20))
+        held_out_windows.select_scene_seeds(seeds, seed_range=(10, 20))
     with pytest.raises(ValueError, match=r"\(0, 1\]"):
-        prediction.select_scene_seeds(seeds, last_fraction=1.5)
+        held_out_windows.select_scene_seeds(seeds, last_fraction=1.5)
     for bad in ("7", "a:b", "5:5"):
         with pytest.raises(ValueError, match="A:B|empty"):
-            prediction.parse_seed_range(bad)
+            held_out_windows.parse_seed_range(bad)
 
 
 # ----------------------------------------------------------------------------- fixtures: tiny dataset, untrained policy
@@ -125,19 +133,20 @@ def untrained_policy(tmp_path_factory) -> Path:
 
 def test_ground_truth_poses_are_the_integrated_recorded_twists(tiny_dataset):
     """The recorded future poses equal the recorded twists integrated from the current pose (T Exp(a dt))."""
-    episodes, held_out = prediction.load_episodes(tiny_dataset, all_scenes=True)
+    episodes, held_out = held_out_windows.load_episodes(tiny_dataset, all_scenes=True)
     assert episodes and held_out["scene_seeds"] == [0]
-    windows = prediction.make_windows(episodes, features.HISTORY_STEPS, features.HORIZON_STEPS)
+    windows = held_out_windows.make_windows(episodes, features.HISTORY_STEPS, features.HORIZON_STEPS)
     assert len(windows) == sum(len(ep.states) - features.HISTORY_STEPS - features.HORIZON_STEPS + 1 for ep in episodes)
-    batch, current, gt = prediction.window_batch(episodes, windows[::7], features.HISTORY_STEPS, features.HORIZON_STEPS)
+    batch, current, gt = held_out_windows.window_batch(episodes, windows[::7], features.HISTORY_STEPS,
+                                                       features.HORIZON_STEPS)
     assert batch[features.STATE].shape == (len(windows[::7]), features.HISTORY_STEPS, features.STATE_DIM)
     # observation.state's twist at t+1 is the action realised over step t.
     twists = torch.stack(
         [torch.as_tensor(episodes[i].states[t + 1 : t + 1 + features.HORIZON_STEPS, features.EE_TWIST])
          for i, t in windows[::7]]
     )
-    integrated = prediction.future_poses(current, twists)
-    assert prediction.displacement_errors(gt, integrated).max() < 0.5  # < 0.5e-3 of pose distance
+    integrated = prediction_metrics.future_poses(current, twists)
+    assert prediction_metrics.displacement_errors(gt, integrated).max() < 0.5  # < 0.5e-3 of pose distance
 
 
 def test_prediction_cli_reports_finite_consistent_metrics(tiny_dataset, untrained_policy, tmp_path, capsys):
@@ -149,7 +158,7 @@ def test_prediction_cli_reports_finite_consistent_metrics(tiny_dataset, untraine
     m = report["metrics"]
     assert all(math.isfinite(v) and v > 0 for v in m.values())
     assert m["ade_bom"] <= m["ade_ml"] + 1e-9 and m["fde_bom"] <= m["fde_ml"] + 1e-9
-    episodes, _ = prediction.load_episodes(tiny_dataset, all_scenes=True)
+    episodes, _ = held_out_windows.load_episodes(tiny_dataset, all_scenes=True)
     assert report["num_windows"] == sum(len(ep.states) - 19 for ep in episodes)
     assert report["num_episodes"] == len(episodes) and report["scene_seeds"] == [0]
     assert report["window"] == dict(history=8, horizon=12, length=20, current_index=7)
@@ -327,9 +336,6 @@ def test_planning_trials_resume_after_a_torn_row_and_summary_leaves_out_missing_
 
 def test_step0_calibration_of_a_known_gaussian():
     """Samples of the ML class's own Gaussian are covered at the chi2 rate; far points are not."""
-    from rtv3_maniskill.benchmarks.prediction import step0_calibration
-    from rtv3_maniskill.twist_mixture import TwistMixture
-
     b, k = 4000, 2
     gen = torch.Generator().manual_seed(0)
     axes = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))[0]
@@ -342,10 +348,10 @@ def test_step0_calibration_of_a_known_gaussian():
         rotation_given_translation=lambda v: (torch.zeros_like(v), torch.eye(3).expand(*v.shape[:-1], 3, 3)),
     )
     samples = mean[0] + torch.randn(b, 3, generator=gen, dtype=torch.float64) @ torch.linalg.cholesky(cov).T
-    cal = step0_calibration(mixture, samples, alpha=0.85)
+    cal = prediction_metrics.step0_calibration(mixture, samples, alpha=0.85)
     assert abs(float(cal["covered_ml"].double().mean()) - 0.85) < 0.03
     assert abs(float(cal["sigma_ml"][0]) - (0.01 * 0.02 * 0.05) ** (1 / 3)) < 1e-9
-    far = step0_calibration(mixture, torch.full((b, 3), 5.0, dtype=torch.float64))
+    far = prediction_metrics.step0_calibration(mixture, torch.full((b, 3), 5.0, dtype=torch.float64))
     assert not bool(far["covered_any"].any()) and bool((far["nll"] > cal["nll"].max()).all())
 
 

@@ -21,7 +21,7 @@ from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
 
 
 def _seed_range(text: str) -> tuple[int, int]:
-    from rtv3_maniskill.benchmarks.prediction import parse_seed_range
+    from rtv3_maniskill.benchmarks.held_out_windows import parse_seed_range
 
     try:
         return parse_seed_range(text)
