@@ -17,7 +17,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "visualize-episode": ("visualize_episode",
                           "plot one dataset episode: scene, grasps, target and executed trajectory"),
     "evaluate": ("evaluate",
-                 "RT-V3 prior benchmarks: trajectory prediction (ADE/FDE) and closed-loop planning (SR/CR/TOR)"),
+                 "RT-V3 prior benchmarks: trajectory prediction (ADE/FDE), closed-loop planning (SR/CR/TOR), "
+                 "Table I's ablation rows"),
     "benchmark-env": ("benchmark_env",
                       "time GraspClutter-v1: steps/s, reset incl. grasp sampling, point-cloud capture"),
     "teleop": ("teleop", "interactive shared-control grasping by keyboard, gamepad or simulated user (recorded)"),
