@@ -21,8 +21,6 @@ import torch
 from rtv3_maniskill import features
 
 ENV_STATE = features.ENV_STATE
-GRASP_SUBSET_SIZES = ("uniform", "log_uniform")
-"""Distributions of the grasp-subset size (``RTV3Config.grasp_subset_sizes``; see :func:`subsample_grasps`)."""
 
 
 @dataclass
@@ -184,14 +182,17 @@ def read_actions(batch: dict[str, torch.Tensor], batch_size: int, horizon: int) 
     return actions, ~pad.bool()
 
 
-def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int = 10,
-                     sizes: str = "uniform") -> SceneContext:
-    """Training augmentation (docs/PAPER_DETAILS.md): keep a random subset of 10..all valid grasps, always the target.
+def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int = 1) -> SceneContext:
+    """Training augmentation (docs/PAPER_DETAILS.md): keep a random subset of the valid grasps, always the target.
+
+    The subset size is log-uniform in ``min_keep .. all``, ``floor(exp(U(log min_keep, log(all + 1))))``:
+    small sets, where the target is nearly explicit, come far more often than with uniform sizes; they
+    are the goal signal that teaches the model to read its grasp context.
 
     Args:
         target: ``(B,)`` or ``(B, 1)`` index of the target grasp; rows whose target is out of range or
             not a valid grasp are left unchanged.
-        sizes: subset size distribution over ``min_keep..all``: ``"uniform"`` or ``"log_uniform"``.
+        min_keep: smallest subset (fewer when a row has fewer valid grasps).
     """
     mask = context.grasp_mask
     batch, count = mask.shape
@@ -202,14 +203,9 @@ def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int 
     n_valid = mask.sum(1)
     low = torch.minimum(n_valid, torch.full_like(n_valid, min_keep))
     u = torch.rand(batch, device=mask.device)
-    if sizes == "log_uniform":  # keep_n = floor(exp(U(log low, log(all + 1))))
-        log_low, log_high = low.clamp_min(1).float().log(), (n_valid + 1).float().log()
-        keep_n = torch.exp(log_low + u * (log_high - log_low)).floor().long()
-        keep_n = torch.minimum(torch.maximum(keep_n, low), n_valid)
-    elif sizes == "uniform":
-        keep_n = low + (u * (n_valid - low + 1).float()).long().clamp(max=n_valid - low)
-    else:
-        raise ValueError(f"sizes must be one of {GRASP_SUBSET_SIZES}, got {sizes!r}")
+    log_low, log_high = low.clamp_min(1).float().log(), (n_valid + 1).float().log()
+    keep_n = torch.exp(log_low + u * (log_high - log_low)).floor().long()
+    keep_n = torch.minimum(torch.maximum(keep_n, low), n_valid)
     priority = torch.rand(batch, count, device=mask.device)
     priority = priority.masked_fill(~mask, 2.0)
     priority.scatter_(1, safe_target[:, None], -1.0)

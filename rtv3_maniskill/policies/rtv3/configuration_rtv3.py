@@ -19,12 +19,9 @@ from torch.optim import Optimizer
 from torch.optim.lr_scheduler import LambdaLR
 
 from rtv3_maniskill import features as ft
-from rtv3_maniskill.policies.rtv3.batch import GRASP_SUBSET_SIZES
-from rtv3_maniskill.policies.rtv3.egocentric import HISTORY_ROTATION_RESAMPLE_MODES
+from rtv3_maniskill.policies.rtv3.decoder import ROTATION_CONDITIONING_MODES
 from rtv3_maniskill.policies.rtv3.schedules import exponential_lr_factor
 
-LATENT_TRAINING_MODES = ("enumerate", "sample")
-ROTATION_CONDITIONING_MODES = ("demonstrated", "sampled")
 ENV_STATE = ft.ENV_STATE
 
 
@@ -76,15 +73,10 @@ class RTV3Config(PreTrainedConfig):
         prior_hidden_dim: hidden units of p(z|h0) (32). q(z|h_H) is linear.
         factorized_rotation: True = p(v|h,z) p(w|h,z,v) (Eq. velocitygmm/rotgmm); False = one joint 6-D
             Gaussian per step (the paper's "6D pred" ablation).
-        latent_training: "enumerate" = exact E_q over all K classes (low variance, q also gets gradient
-            from the likelihood); "sample" = one z ~ q per sample (Trajectron++; q learns only via the KL).
 
     Encoders (docs/PAPER_DETAILS.md sizes):
         history_hidden_dim / future_hidden_dim: LSTM / BiLSTM hidden sizes (32).
         grasp_*: transformer encoder d=128, 4 heads, 2 layers + 2-layer decoder queried by h0_d.
-        grasp_input_position: also feed the grasp's EE-frame position (3) next to its 6-D log map.
-        min_grasp_score: grasps with score <= this are dropped from the context (docs/PAPER_DETAILS.md
-            keeps score > 0.4; default 0 keeps every grasp the dataset marks valid).
         point_channels / point_heads / point_depths: the three PTv3-style stages (32/32/C, heads 2/4/4,
             depth 1); point_patch_size 120; point_grid_size 7.5 mm (doubled at each grid pooling).
         point_stem_poolings: parameter-free grid poolings (2x coarser each, features max-pooled, coordinates
@@ -115,13 +107,11 @@ class RTV3Config(PreTrainedConfig):
             twists, the current one (a_{-1}, fed to the decoder) included; the targets stay clean, so
             the prior learns to return to the expert's motion from a perturbed one instead of copying
             the last twist (closed loop, its own errors come back as the current twist). 0 disables.
-        history_rotation_resample_prob / _mode / _speed: training-time probability that a sample's
-            past orientations (and the history's angular twists, the decoder's a_{-1} included) are
-            changed so that the past turn does not tell the next one (``egocentric.resample_past_rotation``):
-            ``"axis"`` turns the past turn's axes by one random rotation and keeps its speeds, ``"rate"``
-            replaces it by a constant turn of up to ``_speed`` rad/s per axis. The targets stay the
-            expert's. Without it the prior continues its own past turn in closed loop (teacher-forced
-            rotation cosine 0.99, closed loop ~0). 0 disables.
+        history_rotation_resample_prob / _speed: training-time probability that a sample's past
+            orientations (and the history's angular twists, the decoder's a_{-1} included) are replaced
+            by a constant turn of up to ``_speed`` rad/s per axis (``egocentric.resample_past_rotation``),
+            so that the past turn does not tell the next one. The targets stay the expert's. Without it
+            the prior continues its own past turn in closed loop. 0 disables.
         rotation_conditioning: what the rotation head p(w | h, z, v) is conditioned on in training:
             "demonstrated" = the demonstrated v; "sampled" = a translation drawn from the predicted
             p(v | h, z) (the paper's two-stage sampling, a regulariser: at inference the head is
@@ -159,11 +149,6 @@ class RTV3Config(PreTrainedConfig):
     decoder_context_dim: int = 64
     head_hidden_dim: int = 128
     factorized_rotation: bool = True
-    teacher_forcing: bool = True
-    """Training: the GRU reads the true previous action (True) or its own most likely one (False,
-    as at inference). Teacher-forced, the next twist is predictable from the last one alone, so
-    little of the loss rewards using the goal context."""
-    latent_training: str = "enumerate"
 
     # Dynamics encoders.
     history_hidden_dim: int = 32
@@ -176,16 +161,10 @@ class RTV3Config(PreTrainedConfig):
     grasp_encoder_layers: int = 2
     grasp_decoder_layers: int = 2
     grasp_feedforward_dim: int = 256
-    grasp_input_position: bool = True
-    min_grasp_score: float = 0.0
     grasp_subset_min: int = 1
     """Training augmentation (docs/PAPER_DETAILS.md): each sample keeps a random subset of grasp candidates of size
     grasp_subset_min..all, always with the target. The authors use 10; 1 also covers the planning
     benchmark, which shows the policy only its target grasp."""
-    grasp_subset_sizes: str = "log_uniform"
-    """How the subset size is drawn in grasp_subset_min..all: "uniform", or "log_uniform" (small
-    sets, where the target is nearly explicit, far more often: the goal signal that teaches the
-    model to use its grasp context; with "uniform" on ~2k planner trajectories it learned to ignore it)."""
 
     # Point cloud encoder (PTv3-style).
     use_point_encoder: bool = True
@@ -223,7 +202,6 @@ class RTV3Config(PreTrainedConfig):
     twist_noise_linear: float = 0.0
     twist_noise_angular: float = 0.0
     history_rotation_resample_prob: float = 0.0
-    history_rotation_resample_mode: str = "axis"
     history_rotation_resample_speed: float = 1.0
     rotation_conditioning: str = "demonstrated"
 
@@ -239,8 +217,6 @@ class RTV3Config(PreTrainedConfig):
         self.point_channels = tuple(int(c) for c in self.point_channels)
         self.point_heads = tuple(int(h) for h in self.point_heads)
         self.point_depths = tuple(int(d) for d in self.point_depths)
-        if self.grasp_subset_sizes not in GRASP_SUBSET_SIZES:
-            raise ValueError(f"grasp_subset_sizes must be one of {GRASP_SUBSET_SIZES}, got {self.grasp_subset_sizes!r}")
         positive_ints = {
             "n_obs_steps": self.n_obs_steps,
             "horizon": self.horizon,
@@ -293,10 +269,6 @@ class RTV3Config(PreTrainedConfig):
                              f"got {self.point_stem_poolings!r}")
         if not self.point_grid_size > 0:
             raise ValueError(f"point_grid_size must be > 0 (metres), got {self.point_grid_size}")
-        if self.latent_training not in LATENT_TRAINING_MODES:
-            raise ValueError(
-                f"latent_training must be one of {LATENT_TRAINING_MODES}, got {self.latent_training!r}"
-            )
         for name in ("translation_scale", "position_scale", "kl_sigmoid_divisor", "z_logit_clip_divisor"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -312,9 +284,6 @@ class RTV3Config(PreTrainedConfig):
         if not 0.0 <= self.history_rotation_resample_prob <= 1.0:
             raise ValueError("RTV3Config.history_rotation_resample_prob must be in [0, 1], "
                              f"got {self.history_rotation_resample_prob}")
-        if self.history_rotation_resample_mode not in HISTORY_ROTATION_RESAMPLE_MODES:
-            raise ValueError(f"history_rotation_resample_mode must be one of {HISTORY_ROTATION_RESAMPLE_MODES}, "
-                             f"got {self.history_rotation_resample_mode!r}")
         if self.rotation_conditioning not in ROTATION_CONDITIONING_MODES:
             raise ValueError(
                 f"rotation_conditioning must be one of {ROTATION_CONDITIONING_MODES}, "

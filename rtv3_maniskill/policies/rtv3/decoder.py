@@ -20,6 +20,9 @@ from torch import nn
 
 from rtv3_maniskill.policies.rtv3.gaussians import AxisGaussian, JointGaussian
 
+ROTATION_CONDITIONING_MODES = ("demonstrated", "sampled")
+"""What the rotation head is evaluated at in training (``RTV3Config.rotation_conditioning``)."""
+
 
 def _mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, out_dim))
@@ -73,14 +76,12 @@ class TrajectoryDecoder(nn.Module):
         return DecoderStart(state, torch.cat([z, self.context_proj(h0)], -1), z)
 
     def _state_log_likelihood(self, h: torch.Tensor, z: torch.Tensor, actions: torch.Tensor, clamp: float,
-                              rotation_conditioning: str = "demonstrated", with_mode: bool = False
-                              ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-        """``log p(a | h, z)`` for GRU states ``h (..., hidden)`` and true actions ``(..., 6)``; each 3-D
-        factor clamped at ``clamp``. The rotation factor ``p(w | h, z, v)`` is evaluated at the true v
-        (``rotation_conditioning="demonstrated"``) or at a (detached) draw ``v ~ p(v | h, z)`` (``"sampled"``).
-
-        ``with_mode=True`` also returns :meth:`mode_action` of the same state, detached (no autograd graph),
-        from the translation head's one evaluation."""
+                              rotation_conditioning: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """``log p(a | h, z)`` for GRU states ``h (..., hidden)`` and true actions ``(..., 6)``, each 3-D
+        factor clamped at ``clamp``, and :meth:`mode_action` of the same state, detached (no autograd
+        graph), from the heads' one evaluation. The rotation factor ``p(w | h, z, v)`` is evaluated at
+        the true v (``rotation_conditioning="demonstrated"``) or at a detached draw ``v ~ p(v | h, z)``
+        (``"sampled"``)."""
         if self.factorized_rotation:
             v, w = actions[..., :3], actions[..., 3:]
             head = self.translation(h, z)
@@ -89,40 +90,29 @@ class TrajectoryDecoder(nn.Module):
         else:
             head = self.joint(h, z)
             ll = head.log_prob(actions).clamp(max=2 * clamp)
-        if not with_mode:
-            return ll
         with torch.no_grad():
             return ll, self.mode_action(h, z, head).detach()
 
     def log_likelihood(self, start: DecoderStart, prev_action: torch.Tensor, actions: torch.Tensor,
-                       clamp: float, teacher_forcing: bool = True,
-                       rotation_conditioning: str = "demonstrated") -> torch.Tensor:
+                       clamp: float, rotation_conditioning: str = "demonstrated") -> torch.Tensor:
         """Per-step ``log p(a_t | h_t, z)``, each 3-D factor clamped at ``clamp``.
 
-        Teacher-forced, the GRU reads the true a_{t-1}; otherwise (``teacher_forcing=False``) it reads
-        its own most likely action (detached), as at inference, so the horizon must be predicted
-        from ``h0`` rather than from a_{t-1}.
+        The GRU runs free, as at inference: it reads its own most likely action (detached), not the
+        true a_{t-1}, so the horizon must be predicted from ``h0`` (teacher-forced, the next twist is
+        predictable from the last one alone, and little of the loss rewards reading the goal).
 
         Args:
             prev_action: ``(R, 6)`` a_{-1}. actions: ``(R, H, 6)`` true a_0..a_{H-1} (network units).
-            rotation_conditioning: ``"demonstrated"`` or ``"sampled"`` (see :meth:`_state_log_likelihood`).
+            rotation_conditioning: one of :data:`ROTATION_CONDITIONING_MODES` (see :meth:`_state_log_likelihood`).
         Returns:
             ``(R, H)`` log-likelihoods.
         """
-        horizon = actions.shape[1]
-        if not teacher_forcing:
-            state, action, out = start.state, prev_action, []
-            for t in range(horizon):
-                state = self.step(start, action, state)
-                ll, action = self._state_log_likelihood(state[0], start.z, actions[:, t], clamp,
-                                                        rotation_conditioning, with_mode=True)
-                out.append(ll)
-            return torch.stack(out, 1)
-        inputs_prev = torch.cat([prev_action[:, None], actions[:, :-1]], 1)
-        static = start.static_input[:, None].expand(-1, horizon, -1)
-        h, _ = self.gru(torch.cat([static, inputs_prev], -1), start.state)  # (R, H, hidden)
-        return self._state_log_likelihood(h, start.z[:, None].expand(-1, horizon, -1), actions, clamp,
-                                          rotation_conditioning)
+        state, action, out = start.state, prev_action, []
+        for t in range(actions.shape[1]):
+            state = self.step(start, action, state)
+            ll, action = self._state_log_likelihood(state[0], start.z, actions[:, t], clamp, rotation_conditioning)
+            out.append(ll)
+        return torch.stack(out, 1)
 
     def step(self, start: DecoderStart, prev_action: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """One GRU step: ``(R, 6)`` a_{t-1}, ``(1, R, hidden)`` h_{t-1} -> ``(1, R, hidden)`` h_t."""

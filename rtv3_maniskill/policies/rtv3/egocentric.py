@@ -46,51 +46,32 @@ def perturb_twists(twists: torch.Tensor, linear: float, angular: float) -> torch
     return twists + uniform_se3_noise(twists, linear, angular)
 
 
-HISTORY_ROTATION_RESAMPLE_MODES = ("axis", "rate")
-
-
 def resample_past_rotation(
-    poses: torch.Tensor, twists: torch.Tensor, selected: torch.Tensor, mode: str, max_speed: float, dt: float
+    poses: torch.Tensor, twists: torch.Tensor, selected: torch.Tensor, max_rate: float, dt: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Change the past orientations of ``selected`` samples so that their past turn says nothing
-    about where the turn goes next.
+    """Replace the past turn of ``selected`` samples by a random constant one, so that their past turn
+    says nothing about where the turn goes next.
 
-    Training augmentation against continuing the past rotation (``RTV3Config.history_rotation_resample_*``):
-    the targets stay the expert's turn toward the goal, so the rotation head has to read the goal.
-
-    * ``"axis"``: the past turn keeps its speeds, its axes are rotated by one uniform random
-      rotation ``Q``: ``R'_t = R_0 Q (R_0^T R_t) Q^T``, body rates ``w'_t = Q w_t`` (how fast the hand
-      has been turning stays readable, not about which axis).
-    * ``"rate"``: a turn at one random constant rate ``w ~ U(-max_speed, max_speed)^3`` rad/s,
-      ``R'_t = R_0 Exp(w t dt)`` for ``t = -T+1 .. 0``.
-
-    Both end at the current orientation; positions and world-frame linear velocities are kept (the
-    body-frame ``v`` is re-expressed in the new orientations).
+    Training augmentation against continuing the past rotation (``RTV3Config.history_rotation_resample_prob``):
+    the targets stay the expert's turn toward the goal, so the rotation head has to read the goal. The
+    new turn has one rate ``w ~ U(-max_rate, max_rate)^3`` rad/s (body frame), ``R'_t = R_0 Exp(w t dt)``
+    for ``t = -T+1 .. 0``: it ends at the current orientation. Positions and world-frame linear
+    velocities are kept (the body-frame ``v`` is re-expressed in the new orientations).
 
     Args:
         poses: ``(B, T, 4, 4)`` world EE poses, the last one current.
         twists: ``(B, T, 6)`` body twists of those poses (m/s, rad/s).
         selected: ``(B,)`` bool, which samples to change.
+        max_rate: bound of each rate component (rad/s). dt: control period (s).
     Returns:
         ``(poses, twists)`` with the same shapes; unselected samples unchanged.
     """
     batch, steps = poses.shape[:2]
     current = poses[:, -1:, :3, :3]
-    if mode == "axis":
-        quat = torch.randn(batch, 4, dtype=poses.dtype, device=poses.device)
-        turn = se3.quat_to_matrix(quat / quat.norm(dim=-1, keepdim=True))[:, None]  # Q, (B, 1, 3, 3)
-        relative = current.transpose(-1, -2) @ poses[..., :3, :3]  # R_0^T R_t
-        rotation = current @ turn @ relative @ turn.transpose(-1, -2)
-        angular = (turn @ twists[..., 3:, None].to(poses.dtype))[..., 0]
-    elif mode == "rate":
-        rate = (torch.rand(batch, 3, dtype=poses.dtype, device=poses.device) * 2 - 1) * max_speed
-        times = torch.arange(1 - steps, 1, dtype=poses.dtype, device=poses.device) * dt  # (T,) <= 0
-        rotation = current @ se3.so3_exp(rate[:, None, :] * times[None, :, None])  # (B, T, 3, 3)
-        angular = rate[:, None, :].expand(-1, steps, -1)
-    else:
-        raise ValueError(
-            f"unknown history rotation resample mode {mode!r}; choose one of {HISTORY_ROTATION_RESAMPLE_MODES}"
-        )
+    rate = (torch.rand(batch, 3, dtype=poses.dtype, device=poses.device) * 2 - 1) * max_rate
+    times = torch.arange(1 - steps, 1, dtype=poses.dtype, device=poses.device) * dt  # (T,) <= 0
+    rotation = current @ se3.so3_exp(rate[:, None, :] * times[None, :, None])  # (B, T, 3, 3)
+    angular = rate[:, None, :].expand(-1, steps, -1)
     linear_world = (poses[..., :3, :3] @ twists[..., :3, None].to(poses.dtype))[..., 0]
     linear = (rotation.transpose(-1, -2) @ linear_world[..., None])[..., 0]
     new_twists = torch.cat([linear, angular], -1).to(twists.dtype)

@@ -84,8 +84,8 @@ class RTV3Model(nn.Module):
 
     @property
     def grasp_feature_dim(self) -> int:
-        """6-D log map (+ 3 position) + width + score."""
-        return 6 + (3 if self.config.grasp_input_position else 0) + 2
+        """6-D log map + 3 position + width + score."""
+        return 11
 
     def _twist_in(self, twist: torch.Tensor) -> torch.Tensor:
         """SI twist ``(..., 6)`` -> network units (v times translation_scale)."""
@@ -116,10 +116,8 @@ class RTV3Model(nn.Module):
         twists = states[..., features.EE_TWIST]
         if augment and poses.shape[1] > 1 and c.history_rotation_resample_prob > 0:
             selected = torch.rand(poses.shape[0], device=poses.device) < c.history_rotation_resample_prob
-            poses, twists = egocentric.resample_past_rotation(
-                poses, twists, selected, c.history_rotation_resample_mode, c.history_rotation_resample_speed,
-                features.DT,
-            )
+            poses, twists = egocentric.resample_past_rotation(poses, twists, selected,
+                                                              c.history_rotation_resample_speed, features.DT)
         if augment and poses.shape[1] > 1 and (c.history_noise_translation > 0 or c.history_noise_rotation > 0):
             past = egocentric.perturb_poses(poses[:, :-1], c.history_noise_translation, c.history_noise_rotation)
             poses = torch.cat([past, poses[:, -1:]], 1)
@@ -144,12 +142,10 @@ class RTV3Model(nn.Module):
             parts.append(self.point_encoder(xyz, feat, ctx.point_mask, h0_d))  # h_pcl
         if grasp_relative is not None:
             log_map = logs[:, steps:]
-            feats = [log_map[..., :3] * c.position_scale, log_map[..., 3:]]
-            if c.grasp_input_position:
-                feats.append(grasp_relative[..., :3, 3] * c.position_scale)
-            feats += [ctx.grasps[..., 7:8] * c.position_scale, ctx.grasps[..., 8:9]]
-            valid = (ctx.grasp_mask & (ctx.grasps[..., 8] > c.min_grasp_score) if c.min_grasp_score > 0
-                     else ctx.grasp_mask)
+            feats = [log_map[..., :3] * c.position_scale, log_map[..., 3:],
+                     grasp_relative[..., :3, 3] * c.position_scale, ctx.grasps[..., 7:8] * c.position_scale,
+                     ctx.grasps[..., 8:9]]
+            valid = ctx.grasp_mask
             grasp_feat = torch.where(valid[..., None], torch.cat(feats, -1), 0.0)
             parts.append(self.grasp_encoder(grasp_feat, valid, h0_d))  # h_grasp
         return Encoding(h0=torch.cat(parts, -1), prev_action=self._twist_in(x[:, -1, 6:]))
@@ -174,7 +170,9 @@ class RTV3Model(nn.Module):
                 ) -> tuple[torch.Tensor, dict[str, float]]:
         """Negative ELBO (Eq. ELBO, Trajectron++ form).
 
-        ``loss = -E_q[sum_t log p(a_t|h_t,z)] + beta * max(KL(q||p), kl_min) - I_p``.
+        ``loss = -E_q[sum_t log p(a_t|h_t,z)] + beta * max(KL(q||p), kl_min) - I_p``, with the expectation
+        over q exact: every one of the K classes is decoded (low variance, and q also gets gradient from
+        the likelihood, not only through the KL).
 
         Args:
             actions: ``(B, H, 6)`` future body twists a_0..a_{H-1} (SI). valid: ``(B, H)`` bool, False = padding.
@@ -191,19 +189,11 @@ class RTV3Model(nn.Module):
         log_q = self.maneuver_posterior(torch.cat([enc.h0, h_plus], -1), clip)  # q(z | h_H)
         target = self._twist_in(actions)
         weight = valid.to(target.dtype)
-        if c.latent_training == "enumerate":
-            start, prev = self._expand_classes(enc)
-            step_ll = self.decoder.log_likelihood(start, prev, target.repeat_interleave(k, 0), c.log_prob_clamp,
-                                                  c.teacher_forcing, c.rotation_conditioning)
-            seq_ll = (step_ll.view(batch, k, -1) * weight[:, None]).sum(-1)  # (B, K)
-            expected_ll = (log_q.exp() * seq_ll).sum(-1)
-        else:  # one z ~ q per sample (Trajectron++); q learns through the KL term only
-            z_index = torch.distributions.Categorical(logits=log_q.detach()).sample()
-            z = torch.nn.functional.one_hot(z_index, k).to(enc.h0.dtype)
-            start = self.decoder.start(enc.h0, z)
-            step_ll = self.decoder.log_likelihood(start, enc.prev_action, target, c.log_prob_clamp,
-                                                  c.teacher_forcing, c.rotation_conditioning)
-            expected_ll = (step_ll * weight).sum(-1)
+        start, prev = self._expand_classes(enc)
+        step_ll = self.decoder.log_likelihood(start, prev, target.repeat_interleave(k, 0), c.log_prob_clamp,
+                                              c.rotation_conditioning)
+        seq_ll = (step_ll.view(batch, k, -1) * weight[:, None]).sum(-1)  # (B, K)
+        expected_ll = (log_q.exp() * seq_ll).sum(-1)
         nll = -expected_ll.mean()
         kl = kl_categorical(log_q, log_p).mean()
         mi = mutual_information(log_p)
