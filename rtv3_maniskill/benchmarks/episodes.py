@@ -85,7 +85,7 @@ def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None
     if key == "direct":
         return DirectTeleoperation(lin, ang)
     if key == "ho":
-        return HindsightOptimization(ho_variant, lin, ang)
+        return HindsightOptimization(lin, ang)
     if key in ("oracle", "oracle_goal"):  # goals set per trial: method.policy.set_goals(...)
         config = dataclasses.replace(config or SharedControlConfig(), max_linear_speed=lin, max_angular_speed=ang)
         return SharedController(OraclePrior(max_linear_speed=lin, max_angular_speed=ang), config)

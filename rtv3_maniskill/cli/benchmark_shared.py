@@ -54,10 +54,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="goal rule (default: the preset's): all (every floating-hand-feasible grasp, the "
                              "authors' rule; paper) or reachable (only grasps the arm can reach without contact; "
                              "easy); goals.csv and summary.md count both")
-    parser.add_argument("--ho-variant", default="rtv3_authors",
-                        choices=["rtv3_authors", "rtv3_authors_public", "javdani2018"],
-                        help="HO constants: the RT-V3 paper's translation-only baseline, our reading of the "
-                             "authors' public code (rotation assistance x0.125, linear branch x0.6) or the original")
     parser.add_argument("--fusion", choices=["tuned", "paper"], default="tuned",
                         help="RT-V3 fusion preset: tuned (default, chosen on validation scenes: predictive gate at "
                              "alpha 0.99, recursive goal belief, prior covariance x100, a command's zero axes missing "
@@ -137,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed, goals_per_scene=args.goals_per_scene, max_steps=args.max_steps,
             stop_on_contact=not args.continue_after_contact, safety_filter=args.safety_filter,
             obs_mode=args.obs_mode, rendered_context=not args.mesh_context, **scene_settings(args),
-            goals=args.goals or get_preset(args.preset).goals, ho_variant=args.ho_variant, fusion=args.fusion,
+            goals=args.goals or get_preset(args.preset).goals, fusion=args.fusion,
             shared_control=shared_control_overrides(args),
         )
         summary = run_benchmark(config, progress=not args.no_progress, workers=args.workers,

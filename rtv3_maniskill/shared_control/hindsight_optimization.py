@@ -1,23 +1,22 @@
 """Hindsight Optimization (HO) baseline: Javdani et al. 2018, "Shared autonomy via hindsight optimization".
 
-Written from the published method and the original constants (docs/PAPER_DETAILS.md, "Hindsight Optimization"):
+Written from the published method with the RT-V3 paper's constants for its HO baseline
+(docs/PAPER_DETAILS.md, "Hindsight Optimization"): one goal per grasp candidate and a
+translation-only cost, so the rotation of the output is the user's own.
 
-* per goal a Huber cost-to-go on the distance ``d`` (translation: m; rotation: rad,
-  quaternion angle, weighted by ``rotation_weight``):
-  ``V(d) = 0.5 (m/delta) d^2 + c d`` for ``d <= delta``, else ``(m + c) d - m delta / 2``;
+* per goal a Huber cost-to-go on the translation distance ``d`` (m):
+  ``V(d) = 0.5 (m/delta) d^2 + c d`` for ``d <= delta``, else ``(m + c) d - m delta / 2``,
+  with ``m = 1.5, delta = 0.10, c = 0.1``;
 * ``Q(g, u) = action_apply_time * cost(d_now) + V(d after applying u for action_apply_time)``
-  where ``cost(d) = dV/dd`` is the cost rate of moving at unit speed (the original's
-  ``ACTION_APPLY_TIME * cost``, apply time 0.1 s);
+  where ``cost(d) = dV/dd`` is the cost rate of moving at unit speed (apply time 0.1 s);
 * belief: ``log p(g) -= Q_g - V_g`` every step, normalised, one goal capped at
   ``max_goal_probability`` (0.99) with the excess spread evenly over the others;
-* per goal assistance ``a_g = -grad Q``: translation gradient divided by 40 and scaled
-  down linearly within 2 cm; rotation gradient divided by 0.05 and scaled down within pi/12;
+* per goal assistance ``a_g = -grad Q``: the translation gradient divided by 40 and scaled
+  down linearly within 2 cm of the goal;
 * blend ``u = sum_g p(g) a_g + u_user``.
 
 Several target poses may belong to one goal (``target_groups``); a goal uses its target
-with the smallest ``V``. ``variant="rtv3_authors"``: one goal per grasp,
-translation-only cost with ``m = 1.5, delta = 0.10, c = 0.1`` (the rotation of the output
-is the user's own).
+with the smallest ``V``.
 
 Frames: goals and EE pose are world ``(4, 4)``; twists are EE body frame ``[v, w]``.
 """
@@ -27,13 +26,13 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 
 from rtv3_maniskill import features
-from rtv3_maniskill.se3 import se3_exp, so3_log
+from rtv3_maniskill.se3 import se3_exp
 from rtv3_maniskill.shared_control.twist_utils import (
     as_poses,
     check_speed_limits,
@@ -46,65 +45,39 @@ from rtv3_maniskill.shared_control.twist_utils import (
 
 @dataclass(frozen=True)
 class HuberCost:
-    """Huber cost-to-go ``V(d)`` with linear multiplier ``m``, switch ``delta`` and constant ``c``."""
+    """Huber cost-to-go ``V(d)`` with linear multiplier ``m``, switch ``delta`` (m) and constant ``c``."""
 
     linear_multiplier: float
     delta: float
     constant: float
-    linear_branch_scale: float = 1.0
-    """Multiplies the branch ``d > delta`` (value and rate); 1 = the continuous Huber cost."""
 
     def value(self, d: torch.Tensor) -> torch.Tensor:
         """``V(d)``."""
         m, delta, c = self.linear_multiplier, self.delta, self.constant
         quad = 0.5 * (m / delta) * d * d + c * d
-        lin = self.linear_branch_scale * ((m + c) * d - 0.5 * m * delta)
+        lin = (m + c) * d - 0.5 * m * delta
         return torch.where(d <= delta, quad, lin)
 
     def rate(self, d: torch.Tensor) -> torch.Tensor:
         """``dV/dd``: cost per unit distance."""
         m, delta, c = self.linear_multiplier, self.delta, self.constant
-        return torch.where(d <= delta, (m / delta) * d + c, torch.full_like(d, self.linear_branch_scale * (m + c)))
+        return torch.where(d <= delta, (m / delta) * d + c, torch.full_like(d, m + c))
 
 
 @dataclass(frozen=True)
 class HOConstants:
-    """All constants of one HO variant."""
+    """The constants of HO (defaults: the RT-V3 paper's baseline). Units: m, s."""
 
-    translation: HuberCost
-    rotation: HuberCost | None
-    rotation_weight: float = 0.07
+    translation: HuberCost = field(default_factory=lambda: HuberCost(1.5, 0.10, 0.1))
+    """Cost-to-go on the translation distance to a target."""
     action_apply_time: float = 0.1
+    """Time (s) a command is applied for in ``Q``."""
     translation_gradient_divisor: float = 40.0
-    rotation_gradient_divisor: float = 0.05
+    """The assistance is ``-grad Q`` divided by this."""
     translation_scaling_distance: float = 0.02
-    rotation_scaling_angle: float = math.pi / 12
+    """Within this distance (m) of the target the assistance is scaled down linearly."""
     max_goal_probability: float = 0.99
-    rotation_assistance_scale: float = 1.0
-    """Multiplies the rotation part of every goal's assistance."""
-
-
-VARIANTS: dict[str, HOConstants] = {
-    "javdani2018": HOConstants(
-        translation=HuberCost(2.25, 0.07, 0.2),
-        rotation=HuberCost(0.2, math.pi / 32, 0.01),
-    ),
-    "rtv3_authors": HOConstants(translation=HuberCost(1.5, 0.10, 0.1), rotation=None),
-    "rtv3_authors_public": HOConstants(
-        translation=HuberCost(1.5, 0.10, 0.1, linear_branch_scale=0.6),
-        rotation=HuberCost(0.2, math.pi / 32, 0.01),
-        rotation_assistance_scale=0.125,
-    ),
-}
-"""Known variants: the original constants; the RT-V3 paper's translation-only baseline; and our reading
-of the RT-V3 authors' public HO (docs/PAPER_DETAILS.md, "Hindsight Optimization constants"): the
-paper's translation cost with its linear branch scaled by 0.6, and the original rotation cost whose
-assistance is kept, scaled by 0.125."""
-
-
-def _rotation_angle(rot_a: torch.Tensor, rot_b: torch.Tensor) -> torch.Tensor:
-    """Angle (rad, [0, pi]) of ``rot_a^T rot_b`` for ``(..., 3, 3)``."""
-    return so3_log(rot_a.transpose(-1, -2) @ rot_b).norm(dim=-1)
+    """Cap on one goal's probability."""
 
 
 class HindsightGoals:
@@ -112,12 +85,13 @@ class HindsightGoals:
 
     Args:
         goals: ``(N, 4, 4)`` target poses (world), N >= 1.
-        constants: the variant's :class:`HOConstants`.
+        constants: :class:`HOConstants`.
         target_groups: optional ``(N,)`` goal id of every target (targets with the same id form
             one goal, e.g. a pre-grasp and its pi-about-z twin). Default: every target is a goal.
     """
 
-    def __init__(self, goals: Any, constants: HOConstants, target_groups: Sequence[int] | None = None) -> None:
+    def __init__(self, goals: Any, constants: HOConstants | None = None,
+                 target_groups: Sequence[int] | None = None) -> None:
         self.targets = as_poses(goals, "goals")
         n = self.targets.shape[0]
         if target_groups is None:
@@ -130,7 +104,7 @@ class HindsightGoals:
         unique, self._group_index = torch.unique(group_ids, return_inverse=True)
         self.goal_ids = unique
         """``(G,)`` goal ids in belief order."""
-        self.constants = constants
+        self.constants = constants or HOConstants()
         self.reset()
 
     @property
@@ -151,29 +125,18 @@ class HindsightGoals:
 
     # ------------------------------------------------------------------ costs
 
-    def _distances(self, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per target: translation distance (m) and rotation angle (rad) ``(N,), (N,)``."""
-        d_t = (self.targets[:, :3, 3] - pose[:3, 3]).norm(dim=-1)
-        d_r = _rotation_angle(pose[:3, :3].expand_as(self.targets[:, :3, :3]), self.targets[:, :3, :3])
-        return d_t, d_r
+    def _distances(self, pose: torch.Tensor) -> torch.Tensor:
+        """Translation distance (m) of every target ``(N,)`` from EE pose ``(4, 4)``."""
+        return (self.targets[:, :3, 3] - pose[:3, 3]).norm(dim=-1)
 
     def target_values(self, pose: torch.Tensor) -> torch.Tensor:
         """``V`` of every target ``(N,)`` at EE pose ``(4, 4)``."""
-        k = self.constants
-        d_t, d_r = self._distances(pose)
-        value = k.translation.value(d_t)
-        if k.rotation is not None:
-            value = value + k.rotation_weight * k.rotation.value(d_r)
-        return value
+        return self.constants.translation.value(self._distances(pose))
 
     def _target_costs(self, pose: torch.Tensor) -> torch.Tensor:
         """One-step cost ``action_apply_time * cost rate`` of every target ``(N,)``."""
         k = self.constants
-        d_t, d_r = self._distances(pose)
-        cost = k.translation.rate(d_t)
-        if k.rotation is not None:
-            cost = cost + k.rotation_weight * k.rotation.rate(d_r)
-        return k.action_apply_time * cost
+        return k.action_apply_time * k.translation.rate(self._distances(pose))
 
     def _best_targets(self, values: torch.Tensor) -> torch.Tensor:
         """``(G,)`` index of the smallest-V target of every goal."""
@@ -204,9 +167,8 @@ class HindsightGoals:
     # ------------------------------------------------------------------ assistance
 
     def _assistance(self, pose: torch.Tensor, pose_after: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """``-grad Q`` for one target, as a body twist of the current pose ``(6,)``."""
+        """``-grad Q`` for one target, as a body twist of the current pose ``(6,)`` (no rotation)."""
         k = self.constants
-        rot_t = pose[:3, :3].T
         out = torch.zeros(6, dtype=torch.float64)
         diff = pose_after[:3, 3] - target[:3, 3]
         dist = diff.norm()
@@ -214,17 +176,7 @@ class HindsightGoals:
             grad = k.translation.rate(dist) * diff / dist / k.translation_gradient_divisor
             if dist < k.translation_scaling_distance:
                 grad = grad * dist / k.translation_scaling_distance
-            out[:3] = rot_t @ (-grad)
-        if k.rotation is not None:
-            # Rotation error in the after-action body frame, moved to the current body frame.
-            err = so3_log(pose_after[:3, :3].T @ target[:3, :3])
-            angle = err.norm()
-            if angle > 1e-9:
-                magnitude = k.rotation_weight * k.rotation.rate(angle) / k.rotation_gradient_divisor
-                if angle < k.rotation_scaling_angle:
-                    magnitude = magnitude * angle / k.rotation_scaling_angle
-                axis_body = rot_t @ pose_after[:3, :3] @ (err / angle)
-                out[3:] = k.rotation_assistance_scale * magnitude * axis_body
+            out[:3] = pose[:3, :3].T @ (-grad)
         return out
 
     def step(self, pose: torch.Tensor, user: torch.Tensor) -> torch.Tensor:
@@ -256,8 +208,6 @@ class HindsightOptimization:
     :meth:`reset`; or fixed world ``goals`` given here.
 
     Args:
-        variant: ``"rtv3_authors"`` (the RT-V3 paper's baseline: translation-only cost) or
-            ``"javdani2018"`` (the original constants, rotation included).
         max_linear_speed, max_angular_speed: norm limits (m/s, rad/s) of the output; None = none.
         goals: optional ``(N, 4, 4)`` fixed target poses (world) instead of the grasps.
         target_groups: optional ``(N,)`` goal id of each fixed target.
@@ -265,14 +215,10 @@ class HindsightOptimization:
 
     name = "ho"
 
-    def __init__(self, variant: str = "rtv3_authors", max_linear_speed: float | None = 0.3,
-                 max_angular_speed: float | None = 1.2, goals: Any = None,
-                 target_groups: Sequence[int] | None = None) -> None:
-        if variant not in VARIANTS:
-            raise ValueError(f"unknown HO variant {variant!r}; known: {', '.join(VARIANTS)}")
+    def __init__(self, max_linear_speed: float | None = 0.3, max_angular_speed: float | None = 1.2,
+                 goals: Any = None, target_groups: Sequence[int] | None = None) -> None:
         check_speed_limits(max_linear_speed, max_angular_speed)
-        self.variant = variant
-        self.constants = VARIANTS[variant]
+        self.constants = HOConstants()
         self.max_linear_speed = max_linear_speed
         self.max_angular_speed = max_angular_speed
         self._fixed = None if goals is None else HindsightGoals(goals, self.constants, target_groups)
