@@ -15,6 +15,7 @@ import torch
 from rtv3_maniskill import features as ft
 from rtv3_maniskill import se3
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
+from rtv3_maniskill.policies.rtv3.constants import GRASP_FEATURE_DIM
 from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
 from rtv3_maniskill.policies.rtv3.point_encoder import (
     GridPooling,
@@ -162,7 +163,7 @@ def test_config_windows_presets_and_validation():
     # from the training cache (training_cache.py)
     assert cfg.observation_delta_indices is None and cfg.action_delta_indices is None
     assert cfg.reward_delta_indices is None
-    assert cfg.translation_scale == 5.0 and cfg.kl_weight == 100.0 and cfg.kl_min == 0.07
+    assert cfg.kl_weight == 100.0 and cfg.num_maneuver_classes == 10
     optimizer = cfg.get_optimizer_preset()
     assert optimizer.lr == 1e-3 and optimizer.grad_clip_norm == 1.0
     # the fused Adam of the preset takes LeRobot's (plain) Adam steps
@@ -598,7 +599,7 @@ def test_grasp_encoding_ignores_padding_slots_and_their_order(policy: RTV3Policy
     # order of the valid grasps, in a batch of rows with different counts.
     torch.manual_seed(3)
     encoder = policy.model.grasp_encoder.eval()
-    m, f = 12, policy.model.grasp_feature_dim
+    m, f = 12, GRASP_FEATURE_DIM
     feat = torch.randn(3, m, f)
     valid = torch.zeros(3, m, dtype=torch.bool)
     valid[0, [1, 4, 9]] = True

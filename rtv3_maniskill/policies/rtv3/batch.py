@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from rtv3_maniskill import features
+from rtv3_maniskill.policies.rtv3.constants import GRASP_SUBSET_MIN
 
 ENV_STATE = features.ENV_STATE
 
@@ -182,7 +183,7 @@ def read_actions(batch: dict[str, torch.Tensor], batch_size: int, horizon: int) 
     return actions, ~pad.bool()
 
 
-def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int = 1) -> SceneContext:
+def subsample_grasps(context: SceneContext, target: torch.Tensor, min_keep: int = GRASP_SUBSET_MIN) -> SceneContext:
     """Training augmentation (docs/PAPER_DETAILS.md): keep a random subset of the valid grasps, always the target.
 
     The subset size is log-uniform in ``min_keep .. all``, ``floor(exp(U(log min_keep, log(all + 1))))``:

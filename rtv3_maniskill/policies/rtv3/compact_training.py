@@ -74,7 +74,7 @@ def training_step(model: RTV3Model, optimizer: torch.optim.Optimizer, windowed: 
     the grasp-subset augmentation (target kept), the negative ELBO at annealing step ``model_step``,
     backward, gradient clipping, the optimizer step. Returns the loss (not synchronised)."""
     inputs, actions, valid, target = windowed.batch(frames, cfg["horizon"], device)
-    inputs = type(inputs)(inputs.states, subsample_grasps(inputs.context, target, cfg["grasp_subset_min"]))
+    inputs = type(inputs)(inputs.states, subsample_grasps(inputs.context, target))
     loss, _ = model(inputs, actions, valid, model_step)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()

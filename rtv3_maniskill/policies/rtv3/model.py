@@ -3,8 +3,8 @@
 Notation follows the paper: ``x_t`` per-step dynamics, ``h0_d`` past-dynamics encoding,
 ``h_pcl`` / ``h_grasp`` context encodings, ``h0 = [h0_d, h_pcl, h_grasp]``, ``h+`` future
 encoding, ``z`` the maneuver class (one-hot over K), ``a_t = [v_t, w_t]`` body twists.
-Inside the network translational velocities are multiplied by ``translation_scale`` and
-positions by ``position_scale``; every public method here takes and returns SI units.
+Inside the network translational velocities are multiplied by ``constants.TRANSLATION_SCALE`` and
+positions by ``constants.POSITION_SCALE``; every public method here takes and returns SI units.
 """
 
 from __future__ import annotations
@@ -19,6 +19,39 @@ from torch import nn
 from rtv3_maniskill import features, se3
 from rtv3_maniskill.policies.rtv3 import egocentric
 from rtv3_maniskill.policies.rtv3.batch import RTV3Inputs
+from rtv3_maniskill.policies.rtv3.constants import (
+    DECODER_CONTEXT_DIM,
+    FUTURE_HIDDEN_DIM,
+    GRASP_DECODER_LAYERS,
+    GRASP_ENCODER_LAYERS,
+    GRASP_FEATURE_DIM,
+    GRASP_FEEDFORWARD_DIM,
+    GRASP_HEADS,
+    HEAD_HIDDEN_DIM,
+    HISTORY_HIDDEN_DIM,
+    KL_CROSSOVER,
+    KL_MIN,
+    KL_SIGMOID_DIVISOR,
+    KL_WEIGHT_START,
+    LOG_PROB_CLAMP,
+    LOG_SIGMA_MAX,
+    LOG_SIGMA_MIN,
+    MUTUAL_INFORMATION_WEIGHT,
+    POINT_CHANNELS,
+    POINT_DECODER_HEADS,
+    POINT_DECODER_LAYERS,
+    POINT_DEPTHS,
+    POINT_GRID_SIZE,
+    POINT_HEADS,
+    POSITION_SCALE,
+    PRIOR_HIDDEN_DIM,
+    RESAMPLED_TURN_RATE,
+    TRANSLATION_SCALE,
+    Z_LOGIT_CLIP_CROSSOVER,
+    Z_LOGIT_CLIP_DIVISOR,
+    Z_LOGIT_CLIP_FINAL,
+    Z_LOGIT_CLIP_START,
+)
 from rtv3_maniskill.policies.rtv3.context_encoders import GraspEncoder, PointCloudEncoder
 from rtv3_maniskill.policies.rtv3.decoder import DecoderStart, TrajectoryDecoder
 from rtv3_maniskill.policies.rtv3.gaussians import JointGaussian
@@ -49,61 +82,57 @@ class RTV3Model(nn.Module):
     def __init__(self, config: RTV3Config):
         super().__init__()
         self.config = c = config
-        self.history_encoder = nn.LSTM(12, c.history_hidden_dim, batch_first=True)
-        self.future_encoder = nn.LSTM(12, c.future_hidden_dim, batch_first=True, bidirectional=True)
-        h0_dim = c.history_hidden_dim
+        self.history_encoder = nn.LSTM(12, HISTORY_HIDDEN_DIM, batch_first=True)
+        self.future_encoder = nn.LSTM(12, FUTURE_HIDDEN_DIM, batch_first=True, bidirectional=True)
+        h0_dim = HISTORY_HIDDEN_DIM
         self.point_encoder: PointCloudEncoder | None = None
         if c.use_point_encoder:
             self.point_encoder = PointCloudEncoder(
-                in_dim=6, query_dim=c.history_hidden_dim, channels=c.point_channels, heads=c.point_heads,
-                depths=c.point_depths, patch_size=c.point_patch_size, grid_size=c.point_grid_size,
-                position_scale=c.position_scale, decoder_heads=c.point_decoder_heads,
-                decoder_layers=c.point_decoder_layers, dropout=c.transformer_dropout,
+                in_dim=6, query_dim=HISTORY_HIDDEN_DIM, channels=POINT_CHANNELS, heads=POINT_HEADS,
+                depths=POINT_DEPTHS, patch_size=c.point_patch_size, grid_size=POINT_GRID_SIZE,
+                position_scale=POSITION_SCALE, decoder_heads=POINT_DECODER_HEADS,
+                decoder_layers=POINT_DECODER_LAYERS, dropout=c.transformer_dropout,
                 stem_poolings=c.point_stem_poolings,
             )
             h0_dim += self.point_encoder.out_dim
         self.grasp_encoder: GraspEncoder | None = None
         if c.use_grasp_encoder:
             self.grasp_encoder = GraspEncoder(
-                in_dim=self.grasp_feature_dim, query_dim=c.history_hidden_dim, dim=c.grasp_dim,
-                heads=c.grasp_heads, encoder_layers=c.grasp_encoder_layers, decoder_layers=c.grasp_decoder_layers,
-                feedforward=c.grasp_feedforward_dim, dropout=c.transformer_dropout,
+                in_dim=GRASP_FEATURE_DIM, query_dim=HISTORY_HIDDEN_DIM, dim=c.grasp_dim,
+                heads=GRASP_HEADS, encoder_layers=GRASP_ENCODER_LAYERS, decoder_layers=GRASP_DECODER_LAYERS,
+                feedforward=GRASP_FEEDFORWARD_DIM, dropout=c.transformer_dropout,
             )
             h0_dim += self.grasp_encoder.out_dim
         self.h0_dim = h0_dim
         k = c.num_maneuver_classes
-        self.maneuver_prior = ManeuverPrior(h0_dim, c.prior_hidden_dim, k)
-        self.maneuver_posterior = ManeuverPosterior(h0_dim + 2 * c.future_hidden_dim, k)
+        self.maneuver_prior = ManeuverPrior(h0_dim, PRIOR_HIDDEN_DIM, k)
+        self.maneuver_posterior = ManeuverPosterior(h0_dim + 2 * FUTURE_HIDDEN_DIM, k)
         self.decoder = TrajectoryDecoder(
             context_dim=h0_dim, num_classes=k, hidden_dim=c.decoder_hidden_dim,
-            context_proj_dim=c.decoder_context_dim, head_hidden_dim=c.head_hidden_dim,
-            factorized_rotation=c.factorized_rotation, log_sigma_min=c.log_sigma_min, log_sigma_max=c.log_sigma_max,
+            context_proj_dim=DECODER_CONTEXT_DIM, head_hidden_dim=HEAD_HIDDEN_DIM,
+            factorized_rotation=c.factorized_rotation, log_sigma_min=LOG_SIGMA_MIN, log_sigma_max=LOG_SIGMA_MAX,
         )
 
     # ------------------------------------------------------------------------- scaling
 
-    @property
-    def grasp_feature_dim(self) -> int:
-        """6-D log map + 3 position + width + score."""
-        return 11
+    @staticmethod
+    def _twist_in(twist: torch.Tensor) -> torch.Tensor:
+        """SI twist ``(..., 6)`` -> network units (v times ``TRANSLATION_SCALE``)."""
+        return torch.cat([twist[..., :3] * TRANSLATION_SCALE, twist[..., 3:]], -1)
 
-    def _twist_in(self, twist: torch.Tensor) -> torch.Tensor:
-        """SI twist ``(..., 6)`` -> network units (v times translation_scale)."""
-        return torch.cat([twist[..., :3] * self.config.translation_scale, twist[..., 3:]], -1)
-
-    def _twist_out(self, twist: torch.Tensor) -> torch.Tensor:
-        return torch.cat([twist[..., :3] / self.config.translation_scale, twist[..., 3:]], -1)
+    @staticmethod
+    def _twist_out(twist: torch.Tensor) -> torch.Tensor:
+        return torch.cat([twist[..., :3] / TRANSLATION_SCALE, twist[..., 3:]], -1)
 
     def _dynamics_in(self, x: torch.Tensor) -> torch.Tensor:
-        """``x_t (..., 12)`` SI -> network units: pose-log translation x position_scale, twist v x translation_scale."""
-        return torch.cat([x[..., :3] * self.config.position_scale, x[..., 3:6], self._twist_in(x[..., 6:])], -1)
+        """``x_t (..., 12)`` SI -> network units: pose-log translation x position scale, twist v x translation scale."""
+        return torch.cat([x[..., :3] * POSITION_SCALE, x[..., 3:6], self._twist_in(x[..., 6:])], -1)
 
     def clip_and_beta(self, step: int) -> tuple[float, float]:
         """Annealed logit clip and KL weight beta at training step ``step`` (sigmoid schedules)."""
-        c = self.config
-        clip = sigmoid_anneal(step, c.z_logit_clip_start, c.z_logit_clip_final, c.z_logit_clip_crossover,
-                              c.z_logit_clip_divisor)
-        beta = sigmoid_anneal(step, c.kl_weight_start, c.kl_weight, c.kl_crossover, c.kl_sigmoid_divisor)
+        clip = sigmoid_anneal(step, Z_LOGIT_CLIP_START, Z_LOGIT_CLIP_FINAL, Z_LOGIT_CLIP_CROSSOVER,
+                              Z_LOGIT_CLIP_DIVISOR)
+        beta = sigmoid_anneal(step, KL_WEIGHT_START, self.config.kl_weight, KL_CROSSOVER, KL_SIGMOID_DIVISOR)
         return clip, beta
 
     # ------------------------------------------------------------------------- encoders
@@ -116,8 +145,8 @@ class RTV3Model(nn.Module):
         twists = states[..., features.EE_TWIST]
         if augment and poses.shape[1] > 1 and c.history_rotation_resample_prob > 0:
             selected = torch.rand(poses.shape[0], device=poses.device) < c.history_rotation_resample_prob
-            poses, twists = egocentric.resample_past_rotation(poses, twists, selected,
-                                                              c.history_rotation_resample_speed, features.DT)
+            poses, twists = egocentric.resample_past_rotation(poses, twists, selected, RESAMPLED_TURN_RATE,
+                                                              features.DT)
         if augment and poses.shape[1] > 1 and (c.history_noise_translation > 0 or c.history_noise_rotation > 0):
             past = egocentric.perturb_poses(poses[:, :-1], c.history_noise_translation, c.history_noise_rotation)
             poses = torch.cat([past, poses[:, -1:]], 1)
@@ -138,13 +167,12 @@ class RTV3Model(nn.Module):
         parts = [h0_d]
         if self.point_encoder is not None:
             xyz = egocentric.points_in_frame(current, ctx.point_cloud[..., :3])  # T_0^-1 P
-            feat = torch.cat([xyz * c.position_scale, ctx.point_cloud[..., 3:6]], -1)
+            feat = torch.cat([xyz * POSITION_SCALE, ctx.point_cloud[..., 3:6]], -1)
             parts.append(self.point_encoder(xyz, feat, ctx.point_mask, h0_d))  # h_pcl
         if grasp_relative is not None:
             log_map = logs[:, steps:]
-            feats = [log_map[..., :3] * c.position_scale, log_map[..., 3:],
-                     grasp_relative[..., :3, 3] * c.position_scale, ctx.grasps[..., 7:8] * c.position_scale,
-                     ctx.grasps[..., 8:9]]
+            feats = [log_map[..., :3] * POSITION_SCALE, log_map[..., 3:], grasp_relative[..., :3, 3] * POSITION_SCALE,
+                     ctx.grasps[..., 7:8] * POSITION_SCALE, ctx.grasps[..., 8:9]]  # GRASP_FEATURE_DIM
             valid = ctx.grasp_mask
             grasp_feat = torch.where(valid[..., None], torch.cat(feats, -1), 0.0)
             parts.append(self.grasp_encoder(grasp_feat, valid, h0_d))  # h_grasp
@@ -170,7 +198,7 @@ class RTV3Model(nn.Module):
                 ) -> tuple[torch.Tensor, dict[str, float]]:
         """Negative ELBO (Eq. ELBO, Trajectron++ form).
 
-        ``loss = -E_q[sum_t log p(a_t|h_t,z)] + beta * max(KL(q||p), kl_min) - I_p``, with the expectation
+        ``loss = -E_q[sum_t log p(a_t|h_t,z)] + beta * max(KL(q||p), KL_MIN) - I_p``, with the expectation
         over q exact: every one of the K classes is decoded (low variance, and q also gets gradient from
         the likelihood, not only through the KL).
 
@@ -190,14 +218,14 @@ class RTV3Model(nn.Module):
         target = self._twist_in(actions)
         weight = valid.to(target.dtype)
         start, prev = self._expand_classes(enc)
-        step_ll = self.decoder.log_likelihood(start, prev, target.repeat_interleave(k, 0), c.log_prob_clamp,
+        step_ll = self.decoder.log_likelihood(start, prev, target.repeat_interleave(k, 0), LOG_PROB_CLAMP,
                                               c.rotation_conditioning)
         seq_ll = (step_ll.view(batch, k, -1) * weight[:, None]).sum(-1)  # (B, K)
         expected_ll = (log_q.exp() * seq_ll).sum(-1)
         nll = -expected_ll.mean()
         kl = kl_categorical(log_q, log_p).mean()
         mi = mutual_information(log_p)
-        loss = nll + beta * kl.clamp_min(c.kl_min) - c.mutual_information_weight * mi
+        loss = nll + beta * kl.clamp_min(KL_MIN) - MUTUAL_INFORMATION_WEIGHT * mi
         info = {
             "nll": float(nll.detach()),
             "kl": float(kl.detach()),
@@ -234,7 +262,7 @@ class RTV3Model(nn.Module):
         """Step-0 mixture for the posterior (paper Sec. V), unscaled (m/s, rad/s), current EE body frame."""
         enc = self.encode(inputs)
         batch, k = enc.h0.shape[0], self.config.num_maneuver_classes
-        scale = self.config.translation_scale
+        scale = TRANSLATION_SCALE
         start, prev = self._expand_classes(enc)
         h = self.decoder.step(start, prev, start.state)[0]  # h_0 for every (sample, class)
         z = start.z

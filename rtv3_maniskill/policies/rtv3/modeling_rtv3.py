@@ -131,8 +131,7 @@ class RTV3Policy(PreTrainedPolicy):
                 "lerobot-train --policy.path drops it; fine-tune with --policy.type=rtv3 "
                 "--policy.init_weights_from=DIR instead)", ft.TARGET_GRASP)
         if self.training and ft.TARGET_GRASP in batch:
-            inputs = RTV3Inputs(inputs.states, subsample_grasps(inputs.context, batch[ft.TARGET_GRASP],
-                                                                self.config.grasp_subset_min))
+            inputs = RTV3Inputs(inputs.states, subsample_grasps(inputs.context, batch[ft.TARGET_GRASP]))
         loss, info = self.model(inputs, actions.to(inputs.states), valid.to(inputs.states.device), int(self.train_step))
         if self.training:
             self.train_step += 1
