@@ -128,7 +128,7 @@ def test_bad_settings_are_named():
 def test_benchmark_shared_turns_the_goal_belief_off_or_sets_its_margin(tmp_path):
     import argparse
 
-    from rtv3_maniskill.benchmarks.shared_benchmark import BenchmarkConfig
+    from rtv3_maniskill.benchmarks.shared_config import BenchmarkConfig
     from rtv3_maniskill.cli.benchmark_shared import add_arguments, shared_control_overrides
 
     parser = argparse.ArgumentParser()

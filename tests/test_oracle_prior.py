@@ -108,7 +108,7 @@ def test_rtv3_goal_shows_its_learned_prior_only_the_target_grasp():
     """``rtv3-goal``: RT-V3's controller with the policy's grasp mask reduced to the trial's target
     (a ceiling on reading the goal); no belief over the candidates; a target that is not among the
     candidates is a named error."""
-    from rtv3_maniskill.benchmarks.episodes import make_method
+    from rtv3_maniskill.shared_control.methods import make_method
 
     policy = MaskRecordingPrior()
     method = make_method("rtv3-goal", (0.3, 1.2), policy=policy, config=SharedControlConfig())

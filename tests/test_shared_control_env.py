@@ -8,21 +8,18 @@ import numpy as np
 import pytest
 import torch
 
-from rtv3_maniskill.benchmarks.episodes import EpisodeResult, SharedControlEnv, make_method, run_episode
-from rtv3_maniskill.benchmarks.shared_benchmark import (
-    BenchmarkConfig,
-    BenchmarkError,
-    merge_runs,
-    oracle_gain_share,
-    results_store,
-    run_benchmark,
-    summarize,
-    summary_markdown,
-)
+from rtv3_maniskill.benchmarks.episodes import EpisodeResult, SharedControlEnv, run_episode
+from rtv3_maniskill.benchmarks.shared_config import BenchmarkConfig, BenchmarkError
+from rtv3_maniskill.benchmarks.shared_merge import merge_runs
+from rtv3_maniskill.benchmarks.shared_report import summary_markdown
+from rtv3_maniskill.benchmarks.shared_results import results_store
+from rtv3_maniskill.benchmarks.shared_runner import run_benchmark
+from rtv3_maniskill.benchmarks.shared_statistics import oracle_gain_share, summarize
 from rtv3_maniskill.policies.rtv3 import load_policy
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
 from rtv3_maniskill.shared_control import DirectTeleoperation, SharedControlConfig, SharedController, make_user
+from rtv3_maniskill.shared_control.methods import make_method
 from rtv3_maniskill.shared_control.shared_controller import MODES
 from rtv3_maniskill.shared_control.simulated_users import IdealUser
 
@@ -451,22 +448,40 @@ def test_neoss_safety_filter_keeps_a_diving_user_out_of_the_scene():
         SharedControlEnv(num_points=N_POINTS, safety_filter="bumper")
 
 
-@pytest.mark.parametrize("columns_added_since", [1, 2])
-def test_results_written_before_the_safety_filter_and_contact_columns_still_read(tmp_path, columns_added_since):
-    from rtv3_maniskill.benchmarks.shared_benchmark import RESULT_FIELDS, read_results
+def test_an_output_folder_of_another_version_is_refused(tmp_path):
+    """A results.csv with other columns, or a config.json without a setting the run records, is refused
+    with one message naming the difference (a run, its command and a merge alike)."""
+    import json
 
-    old = tmp_path / "results.csv"
-    row = dict(_row(900000, "direct", "collision", 30), final_distance=0.05, autonomous_steps=0, user_only_steps=30,
-               user_seed=1, wall_time_s=1.0, qp_infeasible_steps=2)
-    fields = RESULT_FIELDS[:-columns_added_since]
-    old.write_text(",".join(fields) + "\n" + ",".join(str(row[k]) for k in fields) + "\n")
-    (read,) = read_results(old)
-    assert read["outcome"] == "collision" and read["contact"] == ""
-    assert read["qp_infeasible_steps"] == ("0" if columns_added_since == 2 else "2")
+    from rtv3_maniskill.benchmarks.shared_results import RESULT_FIELDS
+    from rtv3_maniskill.cli import main
+
+    config = BenchmarkConfig(output=tmp_path / "old_columns", scenes=1, users=["laggy"], methods=["direct"])
+    _finished_run(config.output, config, [_row(900000, "direct", "success", 30)])
+    _finished_run(tmp_path / "ho", config, [_row(900000, "ho", "success", 40)])
+    fields = RESULT_FIELDS[:-1]  # a file written before the contact column
+    row = dict(_row(900000, "direct", "collision", 30), wall_time_s=1.0)
+    (config.output / "results.csv").write_text(",".join(fields) + "\n" + ",".join(str(row.get(k, 0)) for k in fields)
+                                               + "\n")
+    with pytest.raises(BenchmarkError, match="has the columns .* expected .*'contact'"):
+        run_benchmark(config, progress=False)
+    with pytest.raises(SystemExit, match="^error: .*has the columns"):
+        main(["benchmark-shared", "--scenes", "1", "--users", "laggy", "--methods", "direct",
+              "--output", str(config.output)])
+    with pytest.raises(BenchmarkError, match="has the columns"):
+        merge_runs([config.output, tmp_path / "ho"], tmp_path / "merged")
+
+    settings = json.loads((tmp_path / "ho" / "config.json").read_text())
+    del settings["goals"]  # a setting an older version did not record
+    (tmp_path / "ho" / "config.json").write_text(json.dumps(settings))
+    with pytest.raises(BenchmarkError, match="other settings .*goals: None -> 'reachable'"):
+        run_benchmark(BenchmarkConfig(output=tmp_path / "ho", scenes=1, users=["laggy"], methods=["ho"]),
+                      progress=False)
 
 
 def test_trials_start_at_the_ready_pose_and_infeasible_goals_are_never_run(tmp_path, env):
-    from rtv3_maniskill.benchmarks.shared_benchmark import GOAL_FIELDS, trial_options
+    from rtv3_maniskill.benchmarks.shared_results import GOAL_FIELDS
+    from rtv3_maniskill.benchmarks.shared_runner import trial_options
     from rtv3_maniskill.records import RecordStore
     from rtv3_maniskill.robot.panda_model import PandaKinematics
     from rtv3_maniskill.robot.scene_geometry import READY_QPOS

@@ -3,7 +3,8 @@
 :class:`SharedControlEnv` wraps one CPU ``GraspClutter-v1`` env (``pd_ee_twist``). Its action is
 the USER body twist ``(6,)`` ``[v (m/s), w (rad/s)]`` in the TCP frame, or ``None`` / zeros for
 "no input". Inside, an assistance method of :mod:`rtv3_maniskill.shared_control` (Direct, HO or
-the RT-V3 :class:`SharedController`, see :func:`make_method`) turns it into the ROBOT twist sent
+the RT-V3 :class:`SharedController`, built by name with
+:func:`rtv3_maniskill.shared_control.methods.make_method`) turns it into the ROBOT twist sent
 to the env (gripper held open).
 
 ``info`` gains ``user_twist (6,)``, ``robot_twist (6,)``, ``assistance_mode`` (``"shared"``,
@@ -16,7 +17,6 @@ pre-grasp and returns an :class:`EpisodeResult`.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,12 +27,9 @@ import torch
 
 from rtv3_maniskill import ENV_ID, features
 from rtv3_maniskill.benchmarks.outcomes import describe_contact, trial_outcome
-from rtv3_maniskill.benchmarks.plan_oracle import PlanOraclePrior
-from rtv3_maniskill.shared_control.assistance import METHOD_NAMES, AssistanceMethod
+from rtv3_maniskill.shared_control.assistance import AssistanceMethod
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
-from rtv3_maniskill.shared_control.hindsight_optimization import HindsightOptimization
-from rtv3_maniskill.shared_control.oracle_prior import OraclePrior, TargetShownPrior
-from rtv3_maniskill.shared_control.shared_controller import SharedControlConfig, SharedController
+from rtv3_maniskill.shared_control.shared_controller import SharedController
 from rtv3_maniskill.tasks.grasp_clutter import GraspClutterEnv
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 
@@ -46,7 +43,7 @@ def _tcp_pose(env: Any) -> torch.Tensor:
     return env.tcp_pose_matrix[0].detach().cpu().double()
 
 
-# ----------------------------------------------------------------------------- methods
+# ----------------------------------------------------------------------------- the controller and the policy
 
 
 def controller_speed_limits(env: Any) -> tuple[float, float]:
@@ -65,41 +62,6 @@ def check_policy_fits_env(policy: Any, env: Any) -> None:
         raise ValueError(
             f"the env gives N={n} points and M={m} grasps but the policy expects N={cfg.num_points}, "
             f"M={cfg.max_grasps}: make the env with num_points/max_grasps from the policy config")
-
-
-def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None, ho_variant: str = "rtv3_authors",
-                config: SharedControlConfig | None = None) -> AssistanceMethod:
-    """Assistance method by name: ``"direct"``, ``"ho"``, ``"rtv3"`` (needs ``policy``) or an oracle
-    (``"oracle"``, ``"oracle_goal"``: RT-V3's controller around an :class:`OraclePrior` whose goals the
-    caller sets before each episode; ``"oracle_plan"``: around a :class:`PlanOraclePrior`, whose planner
-    and goal the caller sets) or ``"rtv3_goal"`` (RT-V3 whose prior is shown only the target
-    grasp, :class:`TargetShownPrior`, which the caller sets before each episode), with the
-    env controller's ``speed_limits`` (m/s, rad/s); ``config`` sets the RT-V3 controller (its speed
-    limits are replaced by the env's).
-
-    Raises:
-        ValueError: unknown name, or ``"rtv3"`` without a policy.
-    """
-    key = str(name).strip().lower().replace("-", "_")
-    lin, ang = speed_limits
-    if key == "direct":
-        return DirectTeleoperation(lin, ang)
-    if key == "ho":
-        return HindsightOptimization(lin, ang)
-    if key in ("oracle", "oracle_goal"):  # goals set per trial: method.policy.set_goals(...)
-        config = dataclasses.replace(config or SharedControlConfig(), max_linear_speed=lin, max_angular_speed=ang)
-        return SharedController(OraclePrior(max_linear_speed=lin, max_angular_speed=ang), config)
-    if key == "oracle_plan":  # planner and goal set per trial: method.policy.set_goal(planner, pregrasp)
-        config = dataclasses.replace(config or SharedControlConfig(), max_linear_speed=lin, max_angular_speed=ang)
-        return SharedController(PlanOraclePrior(max_linear_speed=lin, max_angular_speed=ang), config)
-    if key in ("rtv3", "rt_v3", "rtv3_goal"):
-        if policy is None:
-            raise ValueError(f"method {name!r} needs a policy (load one with rtv3_maniskill.policies.rtv3.load_policy)")
-        config = dataclasses.replace(config or SharedControlConfig(), max_linear_speed=lin, max_angular_speed=ang)
-        if key == "rtv3_goal":  # the target alone: no belief over the candidates to build
-            return SharedController(TargetShownPrior(policy), dataclasses.replace(config, goal_belief_margin=None))
-        return SharedController(policy, config)
-    raise ValueError(f"unknown assistance method {name!r}; known methods: {', '.join(METHOD_NAMES)}")
 
 
 # ----------------------------------------------------------------------------- the wrapper

@@ -12,7 +12,9 @@ again from where the arm is, at most every ``min_replan_steps`` steps; where no 
 collision-free IK at the pre-grasp, or the planner's time runs out) the class points straight at the
 pre-grasp, as ``oracle-goal``'s does. Run through the same fusion and gate as RT-V3, it is the
 ceiling of a prior that plans around the clutter, which the straight-line oracles are not on
-cluttered scenes.
+cluttered scenes. The benchmark builds it by name (``oracle_plan`` of
+:data:`~rtv3_maniskill.shared_control.methods.METHODS`, this class handed in as ``plan_prior``) and
+tells it each trial's planner and target (:meth:`PlanOraclePrior.set_trial`).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import features, se3
+from rtv3_maniskill.benchmarks.goals import aimed_pregrasp
 from rtv3_maniskill.shared_control.oracle_prior import OraclePrior
 from rtv3_maniskill.twist_mixture import TwistMixture
 
@@ -59,6 +62,11 @@ class PlanOraclePrior:
         if goal.shape != (4, 4) or not np.isfinite(goal).all():
             raise ValueError(f"goal must be a finite (4, 4) pose, got shape {goal.shape}")
         self.planner, self.goal = planner, goal
+
+    def set_trial(self, trial: Any) -> None:
+        """The coming episodes' :class:`~rtv3_maniskill.shared_control.methods.Trial`: its planner, and as
+        the goal the pre-grasp of the target's twin a user aims at from the ready pose."""
+        self.set_goal(trial.planner, aimed_pregrasp(trial.planner, trial.grasp_pose))
 
     def reset(self) -> None:
         """A new episode: plan again from its start."""

@@ -223,8 +223,9 @@ def _outcome(result) -> str:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from rtv3_maniskill.benchmarks.episodes import controller_speed_limits, make_method, run_episode
+    from rtv3_maniskill.benchmarks.episodes import controller_speed_limits, run_episode
     from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
+    from rtv3_maniskill.shared_control.methods import make_method
     from rtv3_maniskill.shared_control.simulated_users import make_user
 
     torch.set_num_threads(1)

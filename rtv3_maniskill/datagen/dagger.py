@@ -212,11 +212,11 @@ class DaggerCollector:
         """One closed-loop rollout of ``driver`` towards grasp ``grasp`` of the loaded scene."""
 
         from rtv3_maniskill import features
-        from rtv3_maniskill.benchmarks.episodes import make_method
         from rtv3_maniskill.benchmarks.planning import context_mask
         from rtv3_maniskill.datagen.demonstrations import state_vector
         from rtv3_maniskill.robot.scene_geometry import READY_QPOS
         from rtv3_maniskill.robot.starts import random_start_configuration
+        from rtv3_maniskill.shared_control.methods import make_method
         from rtv3_maniskill.shared_control.simulated_users import make_user
 
         method_name, user_name = parse_driver(driver)

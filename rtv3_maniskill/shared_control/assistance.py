@@ -1,17 +1,11 @@
-"""The interface every assistance method shares (Direct, HO, RT-V3)."""
+"""The interface every assistance method shares (Direct, HO, RT-V3); :mod:`~rtv3_maniskill.shared_control.methods`
+lists them by name."""
 
 from __future__ import annotations
 
 from typing import Any, Protocol, runtime_checkable
 
 import torch
-
-METHOD_NAMES = ("direct", "ho", "rtv3", "oracle", "oracle_goal", "oracle_plan", "rtv3_goal")
-"""Assistance methods by name; the oracles are RT-V3's controller around a prior that knows the
-scene (:class:`~rtv3_maniskill.shared_control.oracle_prior.OraclePrior`; ``oracle_plan``: the true goal
-and the motion planner's path there, ``benchmarks.plan_oracle``); ``rtv3_goal`` is RT-V3 with
-its learned prior shown only the true target (:class:`~rtv3_maniskill.shared_control.oracle_prior.
-TargetShownPrior`)."""
 
 
 @runtime_checkable

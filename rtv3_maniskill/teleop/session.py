@@ -21,8 +21,9 @@ import numpy as np
 import torch
 
 from rtv3_maniskill import features, se3
-from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_speed_limits, make_method, render_frame
+from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_speed_limits, render_frame
 from rtv3_maniskill.datagen.demonstrations import describe_grasp, state_vector
+from rtv3_maniskill.shared_control.methods import make_method
 from rtv3_maniskill.teleop.grasp_actions import EVENTS, GRIPPER_CLOSED, GraspActionConfig, GraspActions
 from rtv3_maniskill.teleop.grasp_trial import GraspTrialMonitor, TrialConfig
 from rtv3_maniskill.teleop.inputs import SimulatedOperator
