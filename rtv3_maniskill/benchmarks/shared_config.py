@@ -65,10 +65,6 @@ def _known_methods() -> list[str]:
     return [f"{name} ({spec.description})" for name, spec in METHODS.items()]
 
 
-def _known_ho_variants() -> list[str]:
-    return ["rtv3_authors"]  # HindsightOptimization has the RT-V3 authors' constants only
-
-
 def _known_fusions() -> list[str]:
     from rtv3_maniskill.shared_control.config import FUSION_PRESETS
 
@@ -127,8 +123,6 @@ class BenchmarkConfig:
         help="goal rule (default: the preset's): all (every floating-hand-feasible grasp, the authors' rule; paper) "
              "or reachable (only grasps the arm can reach without contact; easy); goals.csv holds the arm-reach "
              "check and summary.md counts both either way")
-    ho_variant: str = _option("rtv3_authors", known=_known_ho_variants,
-                              help="HO's constants (rtv3_maniskill.shared_control.hindsight_optimization.VARIANTS)")
     fusion: str = _option(
         "tuned", known=_known_fusions,
         help="RT-V3 fusion preset (SharedControlConfig.preset; tuned was chosen on validation scenes: predictive "
@@ -167,8 +161,7 @@ class BenchmarkConfig:
             if value is not None and value < 1:
                 raise BenchmarkError(f"{name} must be >= 1, got {value}")
         for name, value, known in (("obs_mode", self.obs_mode, OBS_MODES), ("goal rule", self.goals, GOAL_RULES),
-                                   ("execution", self.execution, EXECUTIONS),
-                                   ("HO variant", self.ho_variant, _known_ho_variants())):
+                                   ("execution", self.execution, EXECUTIONS)):
             if value not in known:
                 raise BenchmarkError(f"unknown {name} {value!r}; known: {', '.join(known)}")
         if self.safety_filter is not None and self.safety_filter not in _known_safety_filters():
@@ -225,7 +218,7 @@ class BenchmarkConfig:
                 shared_control.pop(key)
         return dict(
             seed=self.seed, max_steps=self.max_steps, stop_on_contact=self.stop_on_contact, obs_mode=self.obs_mode,
-            rendered_context=self.rendered_context, scene_type=self.scene_type, ho_variant=self.ho_variant,
+            rendered_context=self.rendered_context, scene_type=self.scene_type,
             goals_per_scene=self.goals_per_scene, protocol=PROTOCOL, safety_filter=self.safety_filter,
             policy_path=str(policy_path.resolve()) if policy_path is not None else None,
             policy_weights_sha256=weights_digest(policy_path) if policy_path is not None else None,

@@ -60,7 +60,7 @@ class MethodSpec:
         description: one line for the command-line help.
         build: ``build(max_linear_speed, max_angular_speed, **context)`` returns the method, with the
             env controller's speed limits (m/s, rad/s); ``context``: ``policy``, ``config`` (the RT-V3
-            controller's :class:`SharedControlConfig`), ``ho_variant``, ``plan_prior``.
+            controller's :class:`SharedControlConfig`), ``plan_prior``.
         needs_policy: the method needs the learned RT-V3 policy.
         uses_fusion: the method runs RT-V3's fusion and gate (:class:`SharedController`), so its results
             depend on the controller's settings.
@@ -93,7 +93,7 @@ def _direct(lin: float, ang: float, **_: Any) -> AssistanceMethod:
     return DirectTeleoperation(lin, ang)
 
 
-def _ho(lin: float, ang: float, ho_variant: str = "rtv3_authors", **_: Any) -> AssistanceMethod:
+def _ho(lin: float, ang: float, **_: Any) -> AssistanceMethod:
     return HindsightOptimization(lin, ang)
 
 
@@ -173,14 +173,13 @@ def method_spec(name: str) -> MethodSpec:
     raise ValueError(f"unknown assistance method {name!r}; known methods: {', '.join(METHOD_NAMES)}")
 
 
-def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None, ho_variant: str = "rtv3_authors",
+def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None,
                 config: SharedControlConfig | None = None, plan_prior: Callable[..., Any] | None = None
                 ) -> AssistanceMethod:
     """The assistance method ``name`` (:data:`METHODS`) with the env controller's ``speed_limits`` (m/s, rad/s).
 
     Args:
         policy: the learned RT-V3 prior, for the methods that need it.
-        ho_variant: HO's constants (``hindsight_optimization.VARIANTS``).
         config: the RT-V3 controller's settings for the methods that run its fusion (default: the tuned
             fusion); its speed limits are replaced by ``speed_limits``.
         plan_prior: the planning oracle's prior class (``benchmarks.plan_oracle.PlanOraclePrior``), built
@@ -195,7 +194,7 @@ def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None
     if spec.needs_policy and policy is None:
         raise ValueError(f"method {name!r} needs a policy (load one with rtv3_maniskill.policies.rtv3.load_policy)")
     lin, ang = speed_limits
-    return spec.build(lin, ang, policy=policy, ho_variant=ho_variant, config=config, plan_prior=plan_prior)
+    return spec.build(lin, ang, policy=policy, config=config, plan_prior=plan_prior)
 
 
 __all__ = ["CEILINGS", "DEFAULT_METHODS", "METHODS", "METHOD_NAMES", "MethodSpec", "Trial", "make_method",
