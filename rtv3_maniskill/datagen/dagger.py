@@ -19,7 +19,7 @@ module collects data where the prior will be (Ross et al.'s DAgger, the planner 
    history of the first frames.
 
 Rounds: train, roll out with the new checkpoint, relabel, train again on the union (the datasets
-are merged with LeRobot's ``merge_datasets``, ``scripts/merge_datasets.py``; ``scripts/train_shipped_checkpoint.sh``
+are merged with LeRobot's ``merge_datasets`` through ``rtv3 merge``; ``scripts/train_shipped_checkpoint.sh``
 runs one round with Direct-driven users).
 
 Output: a folder laid out like ``rtv3 generate``'s (``rtv3_staging/`` with ``attempts.csv`` and
