@@ -22,7 +22,8 @@ from rtv3_maniskill.cli.scene_args import (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--method", default="rtv3", choices=["rtv3", "direct", "ho"], help="assistance method")
+    parser.add_argument("--method", default="rtv3",
+                        help="assistance method: rtv3, direct or ho (the ones told nothing of the target)")
     parser.add_argument("--input", default="keyboard",
                         help="keyboard, gamepad or simulated:NAME (NAME: ideal, noisy, laggy, mode_switching, ...)")
     parser.add_argument("--scene-seed", type=int, default=0, help="scene of the first trial (trial i: seed + i)")
@@ -47,6 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rtv3_maniskill.shared_control.methods import UNINFORMED_METHODS, method_spec
     from rtv3_maniskill.shared_control.simulated_users import USERS
     from rtv3_maniskill.teleop.grasp_trial import TrialConfig
     from rtv3_maniskill.teleop.session import SessionConfig, TeleopSession
@@ -67,7 +69,9 @@ def run(args: argparse.Namespace) -> int:
             GamepadInput()
         except RuntimeError as err:
             raise SystemExit(f"error: --input gamepad: {err}") from None
-    if args.method == "rtv3":
+    if args.method not in UNINFORMED_METHODS:
+        raise UsageError(f"--method {args.method!r}: expected one of {', '.join(UNINFORMED_METHODS)}")
+    if method_spec(args.method).needs_policy:
         from rtv3_maniskill.policies.rtv3.checkpoints import CheckpointError, resolve_checkpoint
 
         try:

@@ -158,6 +158,8 @@ METHOD_NAMES = tuple(METHODS)
 DEFAULT_METHODS = tuple(name for name, spec in METHODS.items() if spec.default)
 CEILINGS = tuple(name for name, spec in METHODS.items() if spec.ceiling)
 """The methods whose gain over Direct a benchmark summary shares out: the straight-line and the planning oracle."""
+UNINFORMED_METHODS = tuple(name for name, spec in METHODS.items() if spec.prepare is None)
+"""The methods told nothing of the trial's goal: the ones a person at the controls can use (``rtv3 teleop``)."""
 
 
 def method_spec(name: str) -> MethodSpec:

@@ -23,8 +23,9 @@ import torch
 from rtv3_maniskill import features, se3
 from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_speed_limits, render_frame
 from rtv3_maniskill.datagen.demonstrations import describe_grasp, state_vector
-from rtv3_maniskill.shared_control.methods import make_method
-from rtv3_maniskill.teleop.grasp_actions import EVENTS, GRIPPER_CLOSED, GraspActionConfig, GraspActions
+from rtv3_maniskill.features import GRIPPER_CLOSED
+from rtv3_maniskill.shared_control.methods import make_method, method_spec
+from rtv3_maniskill.teleop.grasp_actions import EVENTS, GraspActionConfig, GraspActions
 from rtv3_maniskill.teleop.grasp_trial import GraspTrialMonitor, TrialConfig
 from rtv3_maniskill.teleop.inputs import SimulatedOperator
 from rtv3_maniskill.teleop.render import scene_state
@@ -128,7 +129,7 @@ class TeleopSession:
         self.config = config
         policy = None
         num_points, max_grasps = features.DEFAULT_NUM_POINTS, features.DEFAULT_MAX_GRASPS
-        if config.method.strip().lower().replace("-", "_") in ("rtv3", "rt_v3"):
+        if method_spec(config.method).needs_policy:
             from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
 
             policy = load_policy(config.policy_path)
