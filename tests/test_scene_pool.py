@@ -11,6 +11,8 @@ import pytest
 
 from rtv3_maniskill.scene_pool import SceneWorkerError, run_scenes
 
+pytestmark = pytest.mark.sim  # every test here runs the simulator
+
 ray = pytest.importorskip("ray")
 
 

@@ -18,7 +18,7 @@ about two hours of one core.
   the whole file (~0.15 s for our features) after every episode.
 
 Everything else (parquet files, episode metadata, stats aggregation, ``finalize``) stays
-LeRobot's. ``tests/test_lerobot_dataset.py`` checks the statistics against LeRobot's own.
+LeRobot's. ``tests/datagen/test_generate.py`` checks the statistics against LeRobot's own.
 """
 
 from __future__ import annotations

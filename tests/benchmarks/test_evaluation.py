@@ -131,6 +131,7 @@ def untrained_policy(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.mark.sim
 def test_ground_truth_poses_are_the_integrated_recorded_twists(tiny_dataset):
     """The recorded future poses equal the recorded twists integrated from the current pose (T Exp(a dt))."""
     episodes, held_out = held_out_windows.load_episodes(tiny_dataset, all_scenes=True)
@@ -149,6 +150,7 @@ def test_ground_truth_poses_are_the_integrated_recorded_twists(tiny_dataset):
     assert prediction_metrics.displacement_errors(gt, integrated).max() < 0.5  # < 0.5e-3 of pose distance
 
 
+@pytest.mark.sim
 def test_prediction_cli_reports_finite_consistent_metrics(tiny_dataset, untrained_policy, tmp_path, capsys):
     out = tmp_path / "prediction.json"
     args = ["evaluate", "prediction", "--policy.path", str(untrained_policy), "--dataset.root", str(tiny_dataset)]
@@ -176,6 +178,7 @@ def test_prediction_cli_reports_finite_consistent_metrics(tiny_dataset, untraine
         main(args)
 
 
+@pytest.mark.sim
 def test_prediction_refuses_a_policy_of_another_context_size(tiny_dataset, tmp_path):
     from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
     from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
@@ -251,6 +254,7 @@ def _trial_rows(folder: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.sim
 def test_planning_benchmark_runs_writes_and_resumes(untrained_policy, tmp_path, capsys):
     out = tmp_path / "planning"
     args = ["evaluate", "planning", "--policy.path", str(untrained_policy), "--scenes", "1",
@@ -297,6 +301,7 @@ class _PreGraspOracle:
         return (se3.body_twist(tcp, goal, 0.5)).float()[None]  # close the gap in ~0.5 s (speed-limited)
 
 
+@pytest.mark.sim
 def test_a_controller_that_reaches_the_pregrasp_counts_as_success(tmp_path):
     oracle = _PreGraspOracle()
     config = planning.PlanningConfig(output=tmp_path / "oracle", scenes=1, max_grasps_per_scene=1, point_cloud="mesh",
@@ -355,6 +360,7 @@ def test_step0_calibration_of_a_known_gaussian():
     assert not bool(far["covered_any"].any()) and bool((far["nll"] > cal["nll"].max()).all())
 
 
+@pytest.mark.sim
 def test_neoss_planner_drives_straight_through_the_damper(tmp_path):
     # Table I's NeoSS row: no policy; a straight twist to the target's pre-grasp, tracked by the NEO
     # QP whose collision damper keeps the arm out of the scene.

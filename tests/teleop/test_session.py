@@ -18,7 +18,9 @@ from rtv3_maniskill import features
 from rtv3_maniskill.teleop.devices import KeyboardMapping
 from rtv3_maniskill.teleop.recorder import ASSIST_MODES, OUTCOMES, USER_TWIST
 
-REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.sim  # every test here runs the simulator
+
+REPO = Path(__file__).resolve().parents[2]
 RTV3 = str(Path(sys.executable).with_name("rtv3"))
 
 

@@ -15,10 +15,11 @@ from rtv3_maniskill import features, se3
 from rtv3_maniskill.features import PREGRASP_DISTANCE, context_mask
 from rtv3_maniskill.policies.rtv3 import load_policy
 
+pytestmark = pytest.mark.sim  # every test here runs the simulator
+
 
 @pytest.fixture(scope="module")
 def policy():
-    torch.set_num_threads(1)
     return load_policy()
 
 

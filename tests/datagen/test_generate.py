@@ -47,6 +47,7 @@ def tiny_dataset(tmp_path_factory) -> Path:
     return root
 
 
+@pytest.mark.sim
 def test_tiny_generation_loads_with_training_windows(tiny_dataset):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -69,6 +70,7 @@ def test_tiny_generation_loads_with_training_windows(tiny_dataset):
     assert item["task"].startswith("grasp the ")
 
 
+@pytest.mark.sim
 def test_actions_are_the_realised_twists(tiny_dataset):
     """Integrating action t from the pose at t gives the recorded pose at t+1 (frames agree)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -83,6 +85,7 @@ def test_actions_are_the_realised_twists(tiny_dataset):
     assert action[-10:].abs().max() < 0.02
 
 
+@pytest.mark.sim
 def test_episode_ends_holding_at_the_pregrasp(tiny_dataset):
     """Default ``--end-at pregrasp`` (paper): the demonstration stops at the target's pre-grasp."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -115,6 +118,7 @@ def test_end_at_pregrasp_cuts_a_staged_approach():
         end_at_pregrasp(state, action, pregrasp_step=40)
 
 
+@pytest.mark.sim
 def test_interrupted_run_resumes_without_duplicates(tmp_path):
     root = tmp_path / "ds"
     cmd = [sys.executable, "-m", "rtv3_maniskill.cli", "generate", "--num-scenes", "1", "--output", str(root),
@@ -143,6 +147,7 @@ def test_interrupted_run_resumes_without_duplicates(tmp_path):
     assert not list(staging.glob("*.tmp.npz"))
 
 
+@pytest.mark.sim
 def test_bad_inputs_give_clear_errors(tmp_path, tiny_dataset):
     with pytest.raises(SystemExit, match="parent folder"):
         main(["generate", "--num-scenes", "1", "--output", str(tmp_path / "missing" / "ds")])
@@ -156,6 +161,7 @@ def test_bad_inputs_give_clear_errors(tmp_path, tiny_dataset):
         main(["generate", "--num-scenes", "1", "--output", str(foreign), *ARGS])
 
 
+@pytest.mark.sim
 def test_failed_run_does_not_block_the_corrected_rerun(tmp_path):
     """A bad --objects is refused before anything is written; a folder whose earlier run failed
     before its first attempt (settings written, nothing recorded) takes a rerun with other settings."""
@@ -176,6 +182,7 @@ def test_failed_run_does_not_block_the_corrected_rerun(tmp_path):
         main(["generate", "--num-scenes", "1", "--output", str(root), "--seed", "7", *ARGS])
 
 
+@pytest.mark.sim
 def test_truncated_staged_episode_names_the_file(tiny_dataset, tmp_path):
     """A truncated staging .npz: a clear error naming the file and what to do; doing it works."""
     root = tmp_path / "ds"
@@ -195,6 +202,7 @@ def test_truncated_staged_episode_names_the_file(tiny_dataset, tmp_path):
     assert LeRobotDataset(REPO_ID, root=root).num_episodes == episodes
 
 
+@pytest.mark.sim
 def test_staged_episode_loads_as_an_episode(tiny_dataset):
     from rtv3_maniskill.datagen.demonstrations import Episode
 
@@ -204,6 +212,7 @@ def test_staged_episode_loads_as_an_episode(tiny_dataset):
     assert episode.task.startswith("grasp the ") and 0 < episode.pregrasp_step < len(episode.state)
 
 
+@pytest.mark.sim
 def test_visualize_episode(tiny_dataset, tmp_path):
     out = tmp_path / "episode.png"
     assert main(["visualize-episode", "--dataset", str(tiny_dataset), "--episode", "0", "--output", str(out)]) == 0
@@ -212,6 +221,7 @@ def test_visualize_episode(tiny_dataset, tmp_path):
     assert image.ndim == 3 and image.std() > 5
 
 
+@pytest.mark.sim
 def test_state_history_matches_the_episode(tiny_dataset):
     """The stored history is the last T states, the first repeated before the episode start."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -224,6 +234,7 @@ def test_state_history_matches_the_episode(tiny_dataset):
         assert torch.equal(history, expected)
 
 
+@pytest.mark.sim
 def test_lerobot_train_on_generated_dataset(tiny_dataset, tmp_path):
     """`lerobot-train --policy.type=rtv3` on `rtv3 generate` output, no extra flag, then reload."""
     from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
@@ -286,6 +297,7 @@ def test_exact_episode_stats_match_lerobots_own():
         np.testing.assert_allclose(ours[key]["q50"].reshape(-1), np.median(data, axis=0), atol=1e-9)
 
 
+@pytest.mark.sim
 def test_exported_dataset_stats_cover_every_frame(tiny_dataset):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -298,6 +310,7 @@ def test_exported_dataset_stats_cover_every_frame(tiny_dataset):
     assert int(np.asarray(stats["count"]).item()) == len(ds)
 
 
+@pytest.mark.sim
 def test_info_json_says_the_layout_of_every_flat_feature_and_batches_unflatten(tiny_dataset):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -316,6 +329,7 @@ def test_info_json_says_the_layout_of_every_flat_feature_and_batches_unflatten(t
     assert batch[features.ACTION] is not None and tuple(batch[features.ACTION].shape) == (1, 6)
 
 
+@pytest.mark.sim
 def test_push_to_hub_uploads_the_dataset_with_a_card_and_fails_clearly_offline(tiny_dataset, tmp_path, monkeypatch):
     import huggingface_hub
     from huggingface_hub import constants

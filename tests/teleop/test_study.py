@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy import stats
 
 from rtv3_maniskill.cli import main
@@ -43,6 +44,7 @@ def test_plan_is_a_latin_square_with_practice():
     assert not {r["scene_seed"] for r in rows if r["practice"]} & {r["scene_seed"] for r in study}
 
 
+@pytest.mark.sim
 def test_analyze_sessions_recorded_with_simulated_users(tmp_path, capsys):
     sessions = []
     for participant, method, user in (("P01", "direct", "ideal"), ("P02", "ho", "ideal")):

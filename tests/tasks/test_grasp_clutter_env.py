@@ -45,6 +45,7 @@ def _check_extra(extra: dict, num_points: int):
     assert extra["grasps_mask"][0].sum() >= 1
 
 
+@pytest.mark.sim
 def test_state_dict_observation(env):
     obs, info = env.reset(seed=1)
     assert obs["agent"]["qpos"].shape == (1, 9)
@@ -53,6 +54,7 @@ def test_state_dict_observation(env):
         assert key in info
 
 
+@pytest.mark.sim
 def test_state_observation_is_flat_vector():
     e = make(obs_mode="state")
     obs, _ = e.reset(seed=1)
@@ -62,6 +64,7 @@ def test_state_observation_is_flat_vector():
     e.close()
 
 
+@pytest.mark.sim
 def test_pointcloud_observation_is_rendered_and_cropped():
     e = make(obs_mode="pointcloud")
     obs, _ = e.reset(seed=1)
@@ -77,6 +80,7 @@ def test_pointcloud_observation_is_rendered_and_cropped():
     e.close()
 
 
+@pytest.mark.sim
 def test_same_seed_same_scene_and_grasps(env):
     _, info_a = env.reset(seed=7)
     base = env.unwrapped
@@ -92,6 +96,7 @@ def test_same_seed_same_scene_and_grasps(env):
     assert int(info_a["target_grasp_index"]) == int(info_c["target_grasp_index"])
 
 
+@pytest.mark.sim
 def test_grasps_spread_over_objects(env):
     spread = []
     for seed in range(4):
@@ -102,6 +107,7 @@ def test_grasps_spread_over_objects(env):
     assert spread and max(spread) >= 2
 
 
+@pytest.mark.sim
 def test_target_grasp_settable_and_validated(env):
     _, info = env.reset(seed=3, options=dict(target_grasp_index=0))
     assert int(info["target_grasp_index"]) == 0
@@ -110,6 +116,7 @@ def test_target_grasp_settable_and_validated(env):
         env.reset(seed=3, options=dict(target_grasp_index=count + 5))
 
 
+@pytest.mark.sim
 def test_twist_control_tracks_command_in_free_space(env):
     env.reset(seed=2)
     command = torch.tensor([[0.08, -0.04, 0.06, 0.3, -0.2, 0.4, 0.0]])
@@ -125,6 +132,7 @@ def test_twist_control_tracks_command_in_free_space(env):
     assert not torch.allclose(start, end)
 
 
+@pytest.mark.sim
 def test_twist_speed_limits(env):
     env.reset(seed=2)
     for _ in range(8):
@@ -143,6 +151,7 @@ def _drive_to(env, goal_fn, steps: int, gain: float = 3.0):
     return info
 
 
+@pytest.mark.sim
 def test_success_when_driven_to_target_pregrasp(env):
     # Choose the highest pre-grasp (clear approach) and drive there in twist control.
     env.reset(seed=5)
@@ -158,6 +167,7 @@ def test_success_when_driven_to_target_pregrasp(env):
     assert bool(info["success"]), f"pregrasp distance {float(info['pregrasp_distance']):.3f}"
 
 
+@pytest.mark.sim
 def test_collision_when_driven_into_table(env):
     env.reset(seed=6)
     assert env.unwrapped.robot_contact_kinds() == [set()]
@@ -175,6 +185,7 @@ def test_collision_when_driven_into_table(env):
     assert env.unwrapped.robot_contact_kinds() == [{"table"}]
 
 
+@pytest.mark.sim
 def test_contact_of_the_arm_with_itself_is_told_apart(env):
     # Down and back towards the base: the elbow folds onto the shoulder before the hand meets anything.
     env.reset(seed=6)
@@ -188,6 +199,7 @@ def test_contact_of_the_arm_with_itself_is_told_apart(env):
     assert env.unwrapped.robot_contact_kinds() == [{"self"}]
 
 
+@pytest.mark.sim
 def test_nan_action_rejected(env):
     env.reset(seed=0)
     with pytest.raises(ValueError, match="NaN"):
@@ -215,6 +227,7 @@ def test_empty_object_folder_is_a_clear_error(tmp_path):
         make(object_source=str(tmp_path / "missing"))
 
 
+@pytest.mark.sim
 def test_mesh_folder_objects(tmp_path):
     import trimesh
 
@@ -229,6 +242,7 @@ def test_mesh_folder_objects(tmp_path):
     e.close()
 
 
+@pytest.mark.sim
 def test_rendered_point_cloud_is_reproducible_by_seed():
     # 64 slots for a few hundred visible points: the cloud is resampled. Two envs reset with the
     # same seed give the same cloud, whatever torch's global random state is.

@@ -135,15 +135,6 @@ def make_policy(seed: int = 0, **overrides) -> RTV3Policy:
     return RTV3Policy(cfg)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def single_thread():
-    """One intra-op thread: the CI machine has 2 shared cores; spinning OpenMP threads oversubscribe it."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 @pytest.fixture(scope="module")
 def policy() -> RTV3Policy:
     return make_policy().eval()
@@ -798,7 +789,7 @@ def test_lerobot_dataset_factory_and_processors_train(tmp_path):
     assert get_policy_class("rtv3") is RTV3Policy
 
     # One row per sample: the policy cuts the history and the future actions from the training cache
-    # (tests/test_training_cache.py), this dataset having no observation.state_history
+    # (tests/policies/test_training_cache.py), this dataset having no observation.state_history
     cfg = RTV3Config(device="cpu", num_points=64, max_grasps=8)
     written = _write_dataset(tmp_path / "ds", cfg)
     meta = written.meta
@@ -842,6 +833,7 @@ def test_lerobot_dataset_factory_and_processors_train(tmp_path):
     assert ModelCard.load(tmp_path / "resaved" / "README.md").data.datasets == "local/rtv3_test"
 
 
+@pytest.mark.sim
 def test_lerobot_train_cli_trains_and_checkpoints(tmp_path):
     """``lerobot-train --policy.type=rtv3`` end to end, then reload the checkpoint with its processors."""
     import importlib.metadata
@@ -882,6 +874,7 @@ def test_lerobot_train_cli_trains_and_checkpoints(tmp_path):
     assert action.shape == (1, 6) and torch.isfinite(action).all()
 
 
+@pytest.mark.sim
 def test_eval_env_shows_the_policy_the_target_whose_pregrasp_counts():
     """``lerobot-eval``'s view scores reaching the episode's target: by default the policy sees only
     that candidate (the planning protocol); ``--env.context=all`` shows every candidate."""
@@ -904,6 +897,7 @@ def test_eval_env_shows_the_policy_the_target_whose_pregrasp_counts():
         RTV3ClutterEnvConfig(context="nearest")
 
 
+@pytest.mark.sim
 def test_env_context_size_mismatch_names_the_sizes_and_the_eval_flags():
     """``lerobot-eval --env.type=rtv3_clutter`` with another point count / grasp count than the
     policy's: the error names the feature, both sizes and ``--env.num_points`` / ``--env.max_grasps``."""

@@ -85,6 +85,7 @@ def test_presets_set_the_scene_execution_contacts_and_goals_and_options_override
         get_preset("hard")
 
 
+@pytest.mark.sim
 def test_tracked_execution_moves_the_arm_by_three_quarters_of_the_command():
     import gymnasium as gym
 
@@ -104,6 +105,7 @@ def test_tracked_execution_moves_the_arm_by_three_quarters_of_the_command():
     assert moved["tracked"] / moved["capped"] == pytest.approx(0.75, abs=0.05)
 
 
+@pytest.mark.sim
 def test_a_small_paper_preset_benchmark_runs_every_candidate_and_counts_both_goal_rules(tmp_path):
     from rtv3_maniskill.cli import main
 

@@ -147,6 +147,7 @@ def test_non_convex_meshes_go_through_coacd_and_broken_ones_are_skipped(tmp_path
     assert {objects.sample(rng).name for _ in range(10)} <= {"urdf000", "urdf001", "urdf003"}
 
 
+@pytest.mark.sim
 def test_grasp_clutter_with_random_urdfs_is_seeded_and_has_grasps():
     env = gym.make("GraspClutter-v1", obs_mode="state_dict", control_mode="pd_ee_twist", num_points=256,
                    object_source="random_urdfs", scene_type="mixed")

@@ -154,6 +154,7 @@ def test_budget_keeps_whole_episodes(dataset):
                         "episode_length": compact.episode_length + 1})
 
 
+@pytest.mark.sim
 def test_build_train_without_lerobot_resume_and_finish(dataset, tmp_path):
     """``build`` here; ``train`` in a process where LeRobot cannot be imported (a bare GPU machine), 4
     steps then resumed to 6; ``finish`` makes the checkpoint a LeRobot folder the policy loads from."""
@@ -199,6 +200,7 @@ def test_build_train_without_lerobot_resume_and_finish(dataset, tmp_path):
     assert twist.shape == (2, 6) and bool(torch.isfinite(twist).all())
 
 
+@pytest.mark.sim
 def test_gpu_recipe_script_trains_and_brings_the_weights_back(dataset, tmp_path):
     """``scripts/train_compact_gpu.sh`` (the command the GPU machine runs), here with DEVICE=cpu: it
     trains into RUN and copies the config, every checkpoint's weights and the log to $OUT."""
@@ -208,7 +210,7 @@ def test_gpu_recipe_script_trains_and_brings_the_weights_back(dataset, tmp_path)
     from_lerobot_dataset(dataset.root).save(cache / CACHE_FILE)
     RTV3Config(device="cpu", num_points=N, max_grasps=M)._save_pretrained(cache)
     assert CompactCache.load(cache / CACHE_FILE).num_frames == 29
-    script = os.path.join(os.path.dirname(__file__), "..", "scripts", "train_compact_gpu.sh")
+    script = os.path.join(os.path.dirname(__file__), "..", "..", "scripts", "train_compact_gpu.sh")
     env = {**os.environ, "DEVICE": "cpu", "PYTHON": sys.executable, "OUT": str(out), "THROUGHPUT_BATCHES": "4",
            "THROUGHPUT_STEPS": "2", "OMP_NUM_THREADS": "1"}
     result = subprocess.run(["bash", script, str(cache), str(tmp_path / "run"), "--steps", "4", "--batch-size", "4",

@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 
+import pytest
 import torch
 from test_policy_rtv3 import _write_dataset
 
@@ -61,6 +62,7 @@ def test_cached_windows_and_loss_equal_lerobots_windows(tmp_path):
         assert "ds_meta" in str(err)
 
 
+@pytest.mark.sim
 def test_lerobot_train_resumes_from_its_last_checkpoint(tmp_path):
     """``lerobot-train --save_freq=N`` then ``--resume=true --config_path=.../train_config.json``: the run goes
     on from the saved step (optimizer, scheduler, the policy's own step counter) with the training cache."""

@@ -63,6 +63,7 @@ def test_unknown_driver_names_the_known_ones(tmp_path):
         DaggerConfig(output=tmp_path / "d", drivers=("direct:sleepy",))
 
 
+@pytest.mark.sim
 def test_relabelled_episode_keeps_the_rollout_history_and_the_experts_actions(tmp_path):
     """A Direct rollout of the ideal user, relabelled at a visited step: the stored episode starts at the
     visited state, its history holds the rollout's states before it, its actions are the expert's plan,

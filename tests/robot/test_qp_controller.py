@@ -76,6 +76,7 @@ def test_free_space_twist_is_tracked_within_1cm_per_s(kin):
     assert ctrl.infeasible_count == 0
 
 
+@pytest.mark.sim
 def test_free_space_twist_is_tracked_in_the_simulator(env):
     env.reset(seed=2)
     command = torch.tensor([[0.08, -0.04, 0.06, 0.3, -0.2, 0.4, 0.0]])
@@ -114,6 +115,7 @@ def test_twist_into_the_table_stops_above_the_stop_distance_model(kin):
     assert filt.infeasible_count == 0
 
 
+@pytest.mark.sim
 def test_twist_into_the_table_stops_before_contact_in_the_simulator(env):
     env.reset(seed=6)
     base = env.unwrapped
@@ -133,6 +135,7 @@ def test_twist_into_the_table_stops_before_contact_in_the_simulator(env):
     assert filt.infeasible_count == 0
 
 
+@pytest.mark.sim
 def test_wrong_control_mode_is_a_clear_error():
     e = gym.make("GraspClutter-v1", obs_mode="state_dict", control_mode="pd_ee_twist", num_points=256)
     try:
@@ -159,6 +162,7 @@ def _pregrasp_near_the_target_only(env, kin, seeds=range(6, 30)):
     raise AssertionError(f"no scene in seeds {seeds} has a pre-grasp near its target only")
 
 
+@pytest.mark.sim
 def test_fingers_may_touch_the_target_object_only(env, kin):
     layout, target, blocked, allowed, q = _pregrasp_near_the_target_only(env, kin)
     world = allowed.world

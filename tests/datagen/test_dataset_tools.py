@@ -59,6 +59,7 @@ def _check_loads(repo_id: str, root: Path, expected: list[tuple[int, int]], num_
     return ds
 
 
+@pytest.mark.sim
 def test_delete_split_merge_modify_tasks_with_lerobot_dataset_tools(generated, tmp_path):
     from lerobot.datasets.dataset_tools import delete_episodes, merge_datasets, modify_tasks, split_dataset
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -96,6 +97,7 @@ def test_delete_split_merge_modify_tasks_with_lerobot_dataset_tools(generated, t
     assert tasks[1] == "grasp that" and set(tasks[:1] + tasks[2:]) == {"grasp something"}
 
 
+@pytest.mark.sim
 def test_lerobot_edit_dataset_cli_delete_episodes(generated, tmp_path):
     """The CLI writes to ``--root / --new_repo_id``; a rerun into the same folder is LeRobot's
     FileExistsError (a folder left by a failed run must be removed first)."""
@@ -112,6 +114,7 @@ def test_lerobot_edit_dataset_cli_delete_episodes(generated, tmp_path):
     _check_loads("local/fewer", root / "local" / "fewer", [episodes[1], *episodes[3:]])
 
 
+@pytest.mark.sim
 def test_rtv3_merge_of_a_merged_dataset_keeps_every_episode(generated, tmp_path, capsys):
     """A merge whose episode metadata spilled into a second file (LeRobot 0.4.4 labels both files 0)
     merges again with every episode, in order, through ``rtv3 merge``."""
@@ -136,6 +139,7 @@ def test_rtv3_merge_of_a_merged_dataset_keeps_every_episode(generated, tmp_path,
     _check_loads(REPO_ID, tmp_path / "again", episodes + episodes)
 
 
+@pytest.mark.sim
 @pytest.mark.parametrize("case, message", [
     ("missing", "error: no such dataset folder: {tmp}/nowhere"),
     ("not_a_dataset", "error: not a LeRobot dataset (no meta/info.json): {tmp}/empty"),

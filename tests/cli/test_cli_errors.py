@@ -13,6 +13,8 @@ import pytest
 
 from rtv3_maniskill.policies.rtv3.checkpoints import SHIPPED_CHECKPOINT
 
+pytestmark = pytest.mark.sim  # every test here runs the simulator
+
 RTV3 = str(Path(sys.executable).with_name("rtv3"))
 
 

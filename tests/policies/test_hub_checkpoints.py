@@ -43,6 +43,7 @@ def test_load_policy_takes_a_repo_id_from_the_offline_cache(offline_cache):
         load_policy("someone/other")
 
 
+@pytest.mark.sim
 def test_commands_take_a_repo_id(offline_cache, tmp_path):
     out = tmp_path / "bench"
     assert main(["benchmark-shared", "--policy.path", REPO, "--scenes", "1", "--goals-per-scene", "1", "--users",

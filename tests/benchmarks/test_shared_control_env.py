@@ -28,14 +28,6 @@ MAX_LINEAR, MAX_ANGULAR = 0.3, 1.2  # the pd_ee_twist controller's limits
 LIMITS = (MAX_LINEAR, MAX_ANGULAR)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def single_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 @pytest.fixture(scope="module")
 def env():
     e = SharedControlEnv(num_points=N_POINTS)
@@ -79,6 +71,7 @@ def _within_limits(twist: torch.Tensor) -> bool:
     return bool(twist[:3].norm() <= MAX_LINEAR + 1e-6 and twist[3:].norm() <= MAX_ANGULAR + 1e-6)
 
 
+@pytest.mark.sim
 def test_direct_passes_the_user_twist_through(env):
     env.method = make_method("direct", LIMITS)
     env.reset(seed=2)
@@ -94,6 +87,7 @@ def test_direct_passes_the_user_twist_through(env):
     np.testing.assert_allclose(torch.stack(realised[3:]).median(0).values.numpy(), command.numpy(), atol=0.01)
 
 
+@pytest.mark.sim
 def test_ho_assists_towards_the_grasp_goals(env):
     env.method = make_method("ho", LIMITS)
     env.reset(seed=5)
@@ -117,6 +111,7 @@ def test_ho_assists_towards_the_grasp_goals(env):
     assert info["robot_twist"].norm() > 1e-4 and torch.equal(info["user_twist"], torch.zeros(6, dtype=torch.float64))
 
 
+@pytest.mark.sim
 def test_rtv3_shared_control_twists_and_diagnostics(env, policy):
     spy = HistorySpy(policy)
     env.method = SharedController(spy, SharedControlConfig(max_linear_speed=MAX_LINEAR, max_angular_speed=MAX_ANGULAR))
@@ -141,6 +136,7 @@ def test_rtv3_shared_control_twists_and_diagnostics(env, policy):
     assert "autonomous" in seen and "shared" in seen, seen
 
 
+@pytest.mark.sim
 def test_run_episode_ideal_user_direct_reaches_the_pregrasp(env):
     # The highest pre-grasp of the scene: a clear approach from the start pose.
     env.reset(seed=5)
@@ -169,6 +165,7 @@ class DivingUser(IdealUser):
         super().reset(goal)
 
 
+@pytest.mark.sim
 def test_run_episode_can_end_a_trial_at_the_first_contact(env):
     options = dict(target_grasp_index=0)
     going_on = run_episode(env, DirectTeleoperation(*LIMITS), DivingUser(), max_steps=60, seed=5, options=options)
@@ -268,6 +265,7 @@ def _rows(path):
         return list(csv.DictReader(f))
 
 
+@pytest.mark.sim
 def test_benchmark_in_worker_processes_gives_the_serial_results_and_resumes_either_way(tmp_path):
     common = dict(scenes=2, users=["noisy"], methods=["direct"], seed=3, goals_per_scene=1, max_steps=30)
     run_benchmark(BenchmarkConfig(output=tmp_path / "serial", **common), progress=False)
@@ -290,6 +288,7 @@ def test_benchmark_in_worker_processes_gives_the_serial_results_and_resumes_eith
         run_benchmark(BenchmarkConfig(output=tmp_path / "serial", **common), progress=False, workers=0)
 
 
+@pytest.mark.sim
 def test_benchmark_writes_results_and_resumes_without_duplicates(tmp_path):
     config = BenchmarkConfig(output=tmp_path, scenes=1, users=["noisy"], methods=["direct", "ho"], seed=3,
                              goals_per_scene=1, max_steps=40)
@@ -394,6 +393,7 @@ def test_benchmark_refuses_to_resume_with_other_shared_control_settings(tmp_path
         BenchmarkConfig(output=tmp_path, shared_control={"max_linear_speed": 1.0})
 
 
+@pytest.mark.sim
 def test_bad_inputs_give_clear_errors(env, policy, tmp_path):
     with pytest.raises(ValueError, match="unknown simulated user"):
         make_user("telepath")
@@ -430,6 +430,7 @@ def test_cli_reports_bad_options_and_missing_checkpoint(tmp_path):
         main(["demo", "--policy.path", str(tmp_path / "missing"), "--output", str(tmp_path / "d")])
 
 
+@pytest.mark.sim
 def test_neoss_safety_filter_keeps_a_diving_user_out_of_the_scene():
     # The same user drives into the table: with Direct alone the trial ends in a contact; behind the
     # NEO damper the arm stops short of it. The benchmark names such results METHOD+neoss.
@@ -479,6 +480,7 @@ def test_an_output_folder_of_another_version_is_refused(tmp_path):
                       progress=False)
 
 
+@pytest.mark.sim
 def test_trials_start_at_the_ready_pose_and_infeasible_goals_are_never_run(tmp_path, env):
     from rtv3_maniskill.benchmarks.shared_results import GOAL_FIELDS
     from rtv3_maniskill.benchmarks.shared_runner import trial_options
