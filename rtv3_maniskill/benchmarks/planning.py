@@ -55,7 +55,6 @@ from rtv3_maniskill.benchmarks.planning_success import (
     PLANNING_SUCCESS_THRESHOLD,
     is_planning_success,
     planning_distance,
-    trace_step,
 )
 from rtv3_maniskill.benchmarks.straight_to_pregrasp import StraightToPregrasp
 from rtv3_maniskill.features import CONTEXT_MODES, GRIPPER_OPEN, context_mask
@@ -225,12 +224,8 @@ class PlanningBenchmark:
                 return q, attempt
         return None, self.config.start_pose_attempts
 
-    def run_trial(self, grasp: int, trace: list[dict[str, float]] | None = None) -> dict[str, Any]:
-        """One trial towards grasp ``grasp`` of the loaded scene; a ``planning_trials.csv`` row.
-
-        With a ``trace`` list, one dict per step is appended (:func:`trace_step`): where the
-        closed loop goes wrong, translation or rotation.
-        """
+    def run_trial(self, grasp: int) -> dict[str, Any]:
+        """One trial towards grasp ``grasp`` of the loaded scene; a ``planning_trials.csv`` row."""
         start_time = time.perf_counter()
         valid = self.base.grasps_mask[0] > 0.5
         context = torch.zeros_like(valid)
@@ -268,9 +263,6 @@ class PlanningBenchmark:
             tcp = self.base.tcp_pose_matrix[0].double()
             distances = planning_distance(tcp, context_poses)
             min_distance = min(min_distance, float(distances.min()))
-            if trace is not None:
-                trace.append(trace_step(step, tcp, context_poses[int(distances.argmin())], twist.reshape(6),
-                                        float(distances.min()), bool(info["collision"][0])))
             reached = bool(is_planning_success(distances.min(), self.config.threshold))
             decided = trial_outcome(collision=bool(info["collision"][0]), success=reached)
             if decided is not None:

@@ -20,7 +20,7 @@ from rtv3_maniskill.benchmarks import (
     prediction,
     prediction_metrics,
 )
-from rtv3_maniskill.benchmarks.planning_success import is_planning_success, planning_distance, trace_step
+from rtv3_maniskill.benchmarks.planning_success import is_planning_success, planning_distance
 from rtv3_maniskill.cli import main
 from rtv3_maniskill.twist_mixture import TwistMixture
 
@@ -219,21 +219,6 @@ def test_planning_success_rule_uses_the_pregrasp_its_twin_and_threshold():
     assert outcomes.trial_outcome(collision=True, success=True) == "collision"
     assert outcomes.trial_outcome(collision=False, success=True) == "success"
     assert outcomes.trial_outcome(collision=False, success=False) is None
-
-
-def test_trial_trace_splits_the_error_into_translation_and_rotation():
-    grasp = _random_poses((1,), seed=4)[0]
-    pre = features.pregrasp_poses(grasp)
-    twist = torch.tensor([0.3, 0.0, 0.4, 0.0, 0.0, 1.2])
-    # 3 cm off along the pre-grasp's x and 30 deg about its z axis (the twin is 150 deg away).
-    row = trace_step(7, pre @ _offset(x=0.03) @ _offset(rz=math.radians(30)), grasp, twist, 0.5, False)
-    assert row["step"] == 7 and row["distance"] == 0.5 and row["collision"] == 0.0
-    assert row["translation_error"] == pytest.approx(0.03)
-    assert row["rotation_error_deg"] == pytest.approx(30.0)
-    assert row["linear_speed"] == pytest.approx(0.5) and row["angular_speed"] == pytest.approx(1.2)
-    # The parallel-jaw twin (pi about z) is the same goal: zero rotation error there.
-    twin = trace_step(1, se3.rotate_about_z(pre, math.pi), grasp, twist, 0.0, True)
-    assert twin["rotation_error_deg"] == pytest.approx(0.0, abs=1e-6) and twin["collision"] == 1.0
 
 
 def test_context_mask_keeps_only_the_target():
