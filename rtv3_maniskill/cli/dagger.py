@@ -20,7 +20,7 @@ from rtv3_maniskill.cli.scene_args import (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from rtv3_maniskill.datagen.dagger import DEFAULT_DRIVERS, FAILURE_WINDOW_STEPS
+    from rtv3_maniskill.datagen.dagger_config import DEFAULT_DRIVERS, FAILURE_WINDOW_STEPS
 
     parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
                         help="checkpoint whose closed loop is rolled out (default: the shipped one)")

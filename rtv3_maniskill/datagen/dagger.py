@@ -38,102 +38,35 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
+import torch
+from tqdm import tqdm
 
-DRIVER_METHODS = ("direct", "rtv3")
-DEFAULT_DRIVERS = ("prior", "rtv3:noisy", "direct:noisy", "rtv3:laggy", "rtv3:mode_switching",
-                   "rtv3:single_dof", "direct:single_dof", "rtv3:low_dof")
-"""The prior alone, and simulated users through RT-V3 (what the shared-control prior must read) and Direct."""
+from rtv3_maniskill import ENV_ID, features
+from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_speed_limits
+from rtv3_maniskill.benchmarks.goals import check_scene_goals
+from rtv3_maniskill.datagen.dagger_config import (
+    DEFAULT_DRIVERS,
+    DRIVER_METHODS,
+    FAILURE_WINDOW_STEPS,
+    DaggerConfig,
+    parse_driver,
+)
+from rtv3_maniskill.datagen.demonstrations import DemonstrationRecorder, state_vector
+from rtv3_maniskill.datagen.lerobot_export import StagedScene, StagingArea, export_lerobot_dataset
+from rtv3_maniskill.features import context_mask
+from rtv3_maniskill.policies.rtv3.checkpoints import load_policy, resolve_checkpoint
+from rtv3_maniskill.records import scene_seeds, select_targets
+from rtv3_maniskill.robot.planner import PandaPlanner
+from rtv3_maniskill.robot.scene_geometry import READY_QPOS
+from rtv3_maniskill.robot.starts import random_start_configuration
+from rtv3_maniskill.scene_pool import run_scenes
+from rtv3_maniskill.shared_control.methods import make_method
+from rtv3_maniskill.shared_control.simulated_users import make_user
+
 DAGGER_SALT = 13
 """``select_targets`` salt of DAgger runs (targets drawn independently of generation and benchmarks)."""
-FAILURE_WINDOW_STEPS = 20
-"""A failed rollout's ``failure_relabels`` come from its last 20 steps (1 s at 20 Hz)."""
-
-
-def parse_driver(spec: str) -> tuple[str, str | None]:
-    """``"prior"`` -> ``("prior", None)``; ``"rtv3:noisy"`` -> ``("rtv3", "noisy")``.
-
-    Raises:
-        ValueError: unknown method or user (the message lists the known ones).
-    """
-    from rtv3_maniskill.shared_control.simulated_users import USERS
-
-    text = str(spec).strip().lower().replace("-", "_")
-    if text == "prior":
-        return "prior", None
-    method, _, user = text.partition(":")
-    if method not in DRIVER_METHODS or user not in USERS:
-        raise ValueError(f"unknown DAgger driver {spec!r}: expected 'prior' or METHOD:USER with METHOD in "
-                         f"{DRIVER_METHODS} and USER in {sorted(USERS)}")
-    return method, user
-
-
-@dataclass
-class DaggerConfig:
-    """Settings of one ``rtv3 dagger`` round.
-
-    Attributes:
-        output: dataset folder (LeRobot root, resumable).
-        policy_path: the checkpoint whose closed loop is rolled out (None = the shipped one).
-        scenes, seed: scene ``i`` has seed ``seed * 100000 + i`` (use a training seed block).
-        drivers: rollout drivers (:func:`parse_driver`); target ``j`` of scene ``i`` gets driver
-            ``(i * targets_per_scene + j) mod len(drivers)``.
-        targets_per_scene: seeded subset of each scene's grasp candidates (None = all).
-        relabels_per_rollout: visited states re-planned per rollout (seeded, spread over the rollout).
-        failure_relabels: 0, or the number of states re-planned from a failed rollout (contact or
-            timeout) instead of ``relabels_per_rollout``, all from its last
-            :data:`FAILURE_WINDOW_STEPS` steps: where it went wrong, the recovery the expert shows.
-        min_step: earliest rollout step that is relabelled (step 0 is the start demonstrations cover).
-        max_steps: rollout length limit (the benchmarks' 150).
-        plan_timeout: seconds per OMPL query.
-    """
-
-    output: Path
-    policy_path: Path | None = None
-    scenes: int = 50
-    seed: int = 5
-    drivers: tuple[str, ...] = DEFAULT_DRIVERS
-    targets_per_scene: int | None = 4
-    relabels_per_rollout: int = 3
-    failure_relabels: int = 0
-    min_step: int = 2
-    max_steps: int = 150
-    plan_timeout: float = 3.0
-    scene_type: str = "mixed"
-    objects: str = "procedural"
-    execution: str = "capped"
-    """How the rollouts' env executes twists (``rtv3_maniskill.presets.EXECUTIONS``)."""
-    self_contacts: bool = True
-    """Whether a robot self contact ends a rollout as a collision."""
-    workers: int = 1
-
-    def __post_init__(self) -> None:
-        self.output = Path(self.output).expanduser().absolute()
-        self.drivers = tuple(self.drivers)
-        if not self.drivers:
-            raise ValueError("drivers must name at least one driver")
-        for spec in self.drivers:
-            parse_driver(spec)
-        for name in ("scenes", "relabels_per_rollout", "max_steps", "workers"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.targets_per_scene is not None and self.targets_per_scene < 1:
-            raise ValueError(f"targets_per_scene must be >= 1 or None, got {self.targets_per_scene}")
-        if self.failure_relabels < 0:
-            raise ValueError(f"failure_relabels must be >= 0, got {self.failure_relabels}")
-        if self.min_step < 1:
-            raise ValueError(f"min_step must be >= 1, got {self.min_step}")
-
-    def settings(self, num_points: int, max_grasps: int) -> dict[str, Any]:
-        """What a resumed run must share (the dataset format and the rollouts' definition)."""
-        return dict(format="rtv3-grasp-clutter-v1", source="dagger", seed=self.seed, scene_type=self.scene_type,
-                    objects=self.objects, num_points=num_points, max_grasps=max_grasps, context="rendered",
-                    end_at="pregrasp", drivers=list(self.drivers), targets_per_scene=self.targets_per_scene,
-                    relabels_per_rollout=self.relabels_per_rollout, failure_relabels=self.failure_relabels,
-                    min_step=self.min_step, max_steps=self.max_steps, policy=str(self.policy_path or "shipped"),
-                    # Only when set, so that rounds made before these options existed still resume.
-                    **({"execution": self.execution} if self.execution != "capped" else {}),
-                    **({"self_contacts": self.self_contacts} if not self.self_contacts else {}))
 
 
 @dataclass
@@ -173,13 +106,6 @@ class DaggerCollector:
     in its own ``pd_joint_pos_vel`` env) and the policy, for one process."""
 
     def __init__(self, config: DaggerConfig, policy: Any) -> None:
-        import gymnasium as gym
-
-        from rtv3_maniskill import ENV_ID
-        from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_speed_limits
-        from rtv3_maniskill.datagen.demonstrations import DemonstrationRecorder
-        from rtv3_maniskill.robot.planner import PandaPlanner
-
         self.config = config
         self.policy = policy
         sizes = dict(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps),
@@ -198,8 +124,6 @@ class DaggerCollector:
         """Build the scene in both envs; the expert records with the rollout's rendered cloud.
         Returns the feasible goals (:func:`~rtv3_maniskill.benchmarks.goals.check_scene_goals`, the
         benchmark's rule), candidate indices."""
-        from rtv3_maniskill.benchmarks.goals import check_scene_goals
-
         self.env.reset(seed=scene_seed)
         self.recorder.load_scene(scene_seed)
         cloud, mask = self.env.rendered_point_cloud
@@ -210,14 +134,6 @@ class DaggerCollector:
 
     def rollout(self, grasp: int, driver: str, seed: int) -> Rollout:
         """One closed-loop rollout of ``driver`` towards grasp ``grasp`` of the loaded scene."""
-
-        from rtv3_maniskill import features
-        from rtv3_maniskill.benchmarks.planning import context_mask
-        from rtv3_maniskill.datagen.demonstrations import state_vector
-        from rtv3_maniskill.robot.scene_geometry import READY_QPOS
-        from rtv3_maniskill.robot.starts import random_start_configuration
-        from rtv3_maniskill.shared_control.methods import make_method
-        from rtv3_maniskill.shared_control.simulated_users import make_user
 
         method_name, user_name = parse_driver(driver)
         rng = np.random.default_rng(seed)
@@ -266,8 +182,6 @@ class DaggerCollector:
 
     def relabel(self, rollout: Rollout, grasp: int, step: int, seed: int):
         """The expert's demonstration from visited step ``step`` (an ``Episode``), or a failure reason."""
-        from rtv3_maniskill import features
-
         q = rollout.qpos[step]
         if not self.recorder.planner.is_collision_free(q):
             return "visited_in_collision"
@@ -296,11 +210,6 @@ def rollout_variant(driver_index: int, step: int | None = None) -> str:
 def _init_worker(setting: tuple[DaggerConfig, bool]) -> DaggerCollector:
     """A scene worker's state: the collector with its envs, planner and policy; with ``write_through``
     (a one-process run) also the staging area, written as each rollout and relabel finishes."""
-    import torch
-
-    from rtv3_maniskill.datagen.lerobot_export import StagingArea
-    from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
-
     config, write_through = setting
     torch.set_num_threads(1)
     collector = DaggerCollector(config, load_policy(config.policy_path))
@@ -311,9 +220,6 @@ def _init_worker(setting: tuple[DaggerConfig, bool]) -> DaggerCollector:
 def _run_scene(collector: DaggerCollector, job: tuple[int, int, list[str]]) -> dict[str, Any]:
     """Roll out and relabel every not-yet-finished target of one scene; returns what to stage and
     counts for the summary."""
-    from rtv3_maniskill.datagen.lerobot_export import StagedScene, StagingArea
-    from rtv3_maniskill.records import select_targets
-
     scene_index, scene_seed, done = job
     config = collector.config
     staged = collector.staging or StagedScene()
@@ -352,13 +258,6 @@ def run_dagger(config: DaggerConfig, progress: bool = True, executor: str = "loc
     """Run (or resume) one DAgger round; exports the LeRobot dataset and returns the summary
     (also written to ``rtv3_summary.json``). Scenes run in ``config.workers`` workers of the scene
     pool (``executor``: local processes or Ray); this process alone writes the staging area."""
-    from tqdm import tqdm
-
-    from rtv3_maniskill.datagen.lerobot_export import StagingArea, export_lerobot_dataset
-    from rtv3_maniskill.policies.rtv3.checkpoints import resolve_checkpoint
-    from rtv3_maniskill.records import scene_seeds
-    from rtv3_maniskill.scene_pool import run_scenes
-
     policy_config = json.loads((resolve_checkpoint(config.policy_path) / "config.json").read_text())
     num_points, max_grasps = int(policy_config["num_points"]), int(policy_config["max_grasps"])
     with StagingArea(config.output, settings=config.settings(num_points, max_grasps)) as staging:
@@ -405,5 +304,5 @@ def run_dagger(config: DaggerConfig, progress: bool = True, executor: str = "loc
     return summary
 
 
-__all__ = ["DEFAULT_DRIVERS", "DaggerCollector", "DaggerConfig", "Rollout", "parse_driver", "relabel_steps",
-           "run_dagger"]
+__all__ = ["DEFAULT_DRIVERS", "DRIVER_METHODS", "FAILURE_WINDOW_STEPS", "DaggerCollector", "DaggerConfig", "Rollout",
+           "parse_driver", "relabel_steps", "run_dagger"]
