@@ -22,7 +22,7 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 
-from rtv3_maniskill import features
+from rtv3_maniskill import ENV_ID, features  # the package registers GraspClutter-v1 with gymnasium
 
 GYM_ID = "rtv3/GraspClutterLeRobot-v1"
 
@@ -34,15 +34,13 @@ class GraspClutterLeRobotEnv(gym.Env):
 
     def __init__(self, render_mode: str | None = "rgb_array", max_episode_steps: int = 150, context: str = "target",
                  **task_kwargs):
-        import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
-
         if context not in features.CONTEXT_MODES:
             raise ValueError(f"unknown context {context!r}; expected one of {features.CONTEXT_MODES}")
         self.context = context
 
         self.render_mode = render_mode
         self._env = gym.make(
-            "GraspClutter-v1",
+            ENV_ID,
             obs_mode="state_dict",
             control_mode="pd_ee_twist",
             render_mode=render_mode,

@@ -27,6 +27,8 @@ import torch
 
 from rtv3_maniskill import ENV_ID, features
 from rtv3_maniskill.benchmarks.outcomes import describe_contact, trial_outcome
+from rtv3_maniskill.robot.neo_qp import NeoSafetyFilter
+from rtv3_maniskill.robot.twist_controller import attach_safety_filters, target_object_index
 from rtv3_maniskill.shared_control.assistance import AssistanceMethod
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
 from rtv3_maniskill.shared_control.shared_controller import SharedController
@@ -121,8 +123,6 @@ class SharedControlEnv(gym.Wrapper):
         self.safety_filter = safety_filter
         self._filter = None
         if safety_filter == "neoss":
-            from rtv3_maniskill.robot.neo_qp import NeoSafetyFilter
-
             self._filter = NeoSafetyFilter()
         self.gripper = features.GRIPPER_OPEN
         """Normalised gripper action sent with every step (1 = open, -1 = closed); stays open unless set."""
@@ -161,8 +161,6 @@ class SharedControlEnv(gym.Wrapper):
         obs = self._with_context(obs)
         self._obs = obs
         if self._filter is not None:  # a reset rebuilds the controllers: attach again every time
-            from rtv3_maniskill.robot.twist_controller import attach_safety_filters, target_object_index
-
             self._filter.reset(self.base.layouts[0], target_object=target_object_index(self.env))
             attach_safety_filters(self.env, [self._filter])
         if isinstance(self.method, SharedController):

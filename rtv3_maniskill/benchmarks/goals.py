@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from rtv3_maniskill.features import pregrasp_poses
+from rtv3_maniskill.robot.planner import PandaPlanner
 from rtv3_maniskill.robot.scene_geometry import READY_QPOS
 from rtv3_maniskill.tasks.grasp_sampler import canonicalize_symmetric
 
@@ -56,8 +57,6 @@ def check_goal(planner, grasp_pose: np.ndarray, target_object: int, reference_tc
 def check_scene_goals(env_base, planner=None, seed: int = 0) -> list[str]:
     """:func:`check_goal` for every candidate of the loaded scene of ``env_base`` (a single
     ``GraspClutter-v1`` env, unwrapped), in candidate order; padding rows are left out."""
-    from rtv3_maniskill.robot.planner import PandaPlanner
-
     if planner is None:
         planner = PandaPlanner(env_base.layouts[0])
     grasp_set = env_base.grasp_sets[0]

@@ -30,12 +30,22 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
+from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_speed_limits, run_episode
+from rtv3_maniskill.benchmarks.goals import check_scene_goals
+from rtv3_maniskill.benchmarks.plan_oracle import PlanOraclePrior
 from rtv3_maniskill.benchmarks.shared_config import BenchmarkConfig, BenchmarkError
 from rtv3_maniskill.benchmarks.shared_report import method_label, write_summaries
 from rtv3_maniskill.benchmarks.shared_results import goals_store, results_store
 from rtv3_maniskill.features import pregrasp_poses
 from rtv3_maniskill.records import select_targets
+from rtv3_maniskill.robot.planner import PandaPlanner
+from rtv3_maniskill.robot.scene_geometry import READY_QPOS
+from rtv3_maniskill.scene_pool import EXECUTORS, run_scenes
+from rtv3_maniskill.shared_control.methods import METHODS, Trial, make_method
+from rtv3_maniskill.shared_control.simulated_users import make_user
 
 TARGET_SALT = 17
 """Salt of the seeded goal choice (:func:`rtv3_maniskill.records.select_targets`) of benchmark runs."""
@@ -48,13 +58,12 @@ def user_seed(seed: int, scene_seed: int, grasp_index: int, user: str) -> int:
 
 def trial_options(grasp_index: int) -> dict[str, Any]:
     """Reset options of one trial: its target, and the arm at the Panda ready pose."""
-    from rtv3_maniskill.robot.scene_geometry import READY_QPOS
-
     return dict(target_grasp_index=int(grasp_index), init_qpos=READY_QPOS)
 
 
 def _policy_path(config: BenchmarkConfig) -> Path:
     """The checkpoint's local folder (a Hub repo id resolved to its cached snapshot)."""
+    # Lazy: the policy package loads LeRobot's config (~1.5 s); only runs of the learned methods need it.
     from rtv3_maniskill.policies.rtv3.checkpoints import resolve_checkpoint
 
     return resolve_checkpoint(config.policy_path)
@@ -65,16 +74,10 @@ class SceneRunner:
     run in a serial run, one worker's share with ``workers > 1``)."""
 
     def __init__(self, config: BenchmarkConfig, policy: Any = None) -> None:
-        import torch
-
-        from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_speed_limits
-        from rtv3_maniskill.benchmarks.plan_oracle import PlanOraclePrior
-        from rtv3_maniskill.shared_control.methods import METHODS, make_method
-
         torch.set_num_threads(1)
         self.config = config
         if config.needs_policy and policy is None:
-            from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
+            from rtv3_maniskill.policies.rtv3.checkpoints import load_policy  # lazy: see _policy_path
 
             policy = load_policy(_policy_path(config))  # clear error when missing
         env_kwargs = config.env_kwargs()
@@ -101,11 +104,6 @@ class SceneRunner:
         ``on_plan(n)`` the scene's number of trials, ``on_trial(row)`` each result as it finishes.
         Returns the new goal-check rows and the result rows.
         """
-        from rtv3_maniskill.benchmarks.episodes import run_episode
-        from rtv3_maniskill.benchmarks.goals import check_scene_goals
-        from rtv3_maniskill.shared_control.methods import Trial
-        from rtv3_maniskill.shared_control.simulated_users import make_user
-
         config, env = self.config, self.env
         env.reset(seed=scene_seed)
         count = int((env.base.grasps_mask[0] > 0.5).sum())
@@ -113,8 +111,6 @@ class SceneRunner:
         unchecked = any(i not in checks for i in range(count))  # a scene not checked yet (or only in part)
         planner = None
         if unchecked or config.needs_planner:
-            from rtv3_maniskill.robot.planner import PandaPlanner
-
             planner = PandaPlanner(env.base.layouts[0])
         if unchecked:
             checks = dict(checks)
@@ -181,10 +177,6 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     (:class:`~rtv3_maniskill.scene_pool.SceneWorkerError`). An output folder holding results of other
     settings, or files with other columns, is refused (:class:`BenchmarkError`).
     """
-    from tqdm import tqdm
-
-    from rtv3_maniskill.scene_pool import EXECUTORS, run_scenes
-
     if workers < 1:
         raise BenchmarkError(f"workers must be >= 1, got {workers}")
     if executor not in EXECUTORS:

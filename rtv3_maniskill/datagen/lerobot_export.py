@@ -32,10 +32,12 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from rtv3_maniskill import features
 from rtv3_maniskill.datagen.demonstrations import END_AT, HOLD_STEPS, Episode
 from rtv3_maniskill.datagen.episode_stats import fast_episode_writes
+from rtv3_maniskill.records import RecordStore
 
 STAGING = "rtv3_staging"
 SETTINGS = "rtv3_generation.json"
@@ -142,8 +144,6 @@ class StagingArea:
     """
 
     def __init__(self, root: Path, settings: dict | None = None):
-        from rtv3_maniskill.records import RecordStore
-
         self.root = Path(root)
         self.dir = self.root / STAGING
         self.attempts_file = self.dir / ATTEMPTS
@@ -186,8 +186,6 @@ class StagingArea:
         """Outcome per attempted key (the last row wins), rows as ``dict(key, scene, grasp,
         outcome, frames)``. A success counts only while its episode file exists (delete a file to
         have its grasp attempted again)."""
-        from rtv3_maniskill.records import RecordStore
-
         rows = RecordStore.read(self.attempts_file, ATTEMPT_FIELDS) if self.attempts_file.exists() else []
         out = {r["key"]: dict(r, scene=int(r["scene"]), grasp=int(r["grasp"]), frames=int(r["frames"])) for r in rows}
         return {k: r for k, r in out.items() if r["outcome"] != "success" or (self.dir / f"{k}.npz").exists()}
@@ -267,8 +265,6 @@ class StagingArea:
         legacy = self.dir / "attempts.jsonl"
         if not legacy.exists() or self.attempts_file.exists():
             return
-        from rtv3_maniskill.records import RecordStore
-
         with RecordStore(self.attempts_file, ATTEMPT_FIELDS, key=("key",)) as store:
             for line in legacy.read_text().splitlines():
                 try:
@@ -286,6 +282,7 @@ def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progres
     ``end_at="grasp"``) are cut at the pre-grasp (:func:`end_at_pregrasp`)."""
     if end_at not in END_AT:
         raise ValueError(f"end_at must be one of {END_AT}, got {end_at!r}")
+    # Lazy: LeRobot takes seconds to load, and the scene workers that stage episodes never export.
     import datasets as hf_datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -317,8 +314,6 @@ def export_lerobot_dataset(root: Path, num_points: int, max_grasps: int, progres
 
 def _add_episodes(dataset, staging: StagingArea, files: list[Path], end_at: str, progress: bool) -> int:
     """Append the staged episodes ``files`` to ``dataset`` (one LeRobot episode each); returns frames."""
-    from tqdm import tqdm
-
     frames = 0
     for path in tqdm(files, desc="export to LeRobot", disable=not progress, unit="episode"):
         ep = staging.load(path)

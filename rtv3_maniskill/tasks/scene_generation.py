@@ -15,6 +15,7 @@ from typing import Literal
 
 import numpy as np
 import sapien
+import torch
 
 from rtv3_maniskill.robot.scene_geometry import (
     WORKSPACE_CENTER,
@@ -23,6 +24,7 @@ from rtv3_maniskill.robot.scene_geometry import (
     ObjectGeometry,
     SceneGeometry,
 )
+from rtv3_maniskill.se3 import matrix_to_quat, quat_to_matrix
 from rtv3_maniskill.tasks.convex_cache import convex_part_file
 from rtv3_maniskill.tasks.object_library import ObjectSet
 
@@ -51,10 +53,6 @@ def sapien_pose_to_matrix(pose: sapien.Pose) -> np.ndarray:
 
 
 def _rot_to_quat(rot: np.ndarray) -> np.ndarray:
-    import torch
-
-    from rtv3_maniskill.se3 import matrix_to_quat
-
     return matrix_to_quat(torch.as_tensor(rot, dtype=torch.float64)).numpy()
 
 
@@ -81,10 +79,6 @@ def add_collision_shapes(builder, shapes: list[CollisionShape], material=None, d
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     """A uniformly random rotation matrix (normalised Gaussian quaternion)."""
-    import torch
-
-    from rtv3_maniskill.se3 import quat_to_matrix
-
     return quat_to_matrix(torch.as_tensor(rng.normal(size=4))).numpy()
 
 

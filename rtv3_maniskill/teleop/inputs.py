@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from rtv3_maniskill.shared_control.simulated_users import make_user
 from rtv3_maniskill.teleop.devices import (
     KEYBOARD_BUTTONS,
     XBOX_PYGAME_AXES,
@@ -48,7 +49,7 @@ class KeyboardInput:
     name = "keyboard"
 
     def __init__(self, mapping: KeyboardMapping | None = None) -> None:
-        import pygame
+        import pygame  # optional extra: only the keyboard and gamepad inputs need it
 
         if pygame.display.get_surface() is None:
             raise RuntimeError("keyboard input needs the pygame window: run without --headless")
@@ -74,7 +75,7 @@ class GamepadInput:
     name = "gamepad"
 
     def __init__(self, mapping: GamepadMapping | None = None, index: int = 0) -> None:
-        import pygame
+        import pygame  # optional extra: only the keyboard and gamepad inputs need it
 
         pygame.joystick.init()
         if pygame.joystick.get_count() <= index:
@@ -105,8 +106,6 @@ class SimulatedOperator:
 
     def __init__(self, user_name: str, seed: int = 0, position_tolerance: float = 0.012,
                  rotation_tolerance: float = 0.12) -> None:
-        from rtv3_maniskill.shared_control.simulated_users import make_user
-
         self.name = f"simulated:{user_name}"
         self.user = make_user(user_name, seed)
         self.position_tolerance = position_tolerance

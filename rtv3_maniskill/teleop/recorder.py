@@ -30,6 +30,7 @@ import numpy as np
 from rtv3_maniskill import features
 from rtv3_maniskill.datagen.lerobot_export import dataset_features, state_histories
 from rtv3_maniskill.features import REPO_ID
+from rtv3_maniskill.records import RecordStore
 
 ASSIST_MODES = ("none", "user_only", "shared", "autonomous", "scripted")
 """``assist_mode`` codes: the index of the mode name (``none``: no method output yet)."""
@@ -89,9 +90,8 @@ class SessionRecorder:
 
     def __init__(self, root: str | Path, num_points: int, max_grasps: int, num_classes: int = DEFAULT_NUM_CLASSES,
                  settings: dict[str, Any] | None = None, resume: bool = False) -> None:
+        # Lazy, as LeRobot below: the study and the grasp actions import this module for its constants only.
         import datasets as hf_datasets
-
-        from rtv3_maniskill.records import RecordStore
 
         self.root = Path(root)
         settings = json.loads(json.dumps(settings or {}, default=str))
@@ -105,7 +105,7 @@ class SessionRecorder:
             else:
                 self.dataset = self._open()
         if not resume:
-            from lerobot.datasets.lerobot_dataset import LeRobotDataset
+            from lerobot.datasets.lerobot_dataset import LeRobotDataset  # loads LeRobot (seconds)
 
             if self.root.exists():
                 raise FileExistsError(f"the session folder {self.root} already exists; record each session into a new "
@@ -205,7 +205,7 @@ class SessionRecorder:
 
     def _open(self) -> Any:
         """The recorded dataset, opened to record more episodes after its last one."""
-        from lerobot.datasets.lerobot_dataset import LeRobotDataset
+        from lerobot.datasets.lerobot_dataset import LeRobotDataset  # loads LeRobot (seconds)
 
         dataset = LeRobotDataset(REPO_ID, root=self.root)
         dataset.meta.metadata_buffer_size = 1
@@ -222,8 +222,6 @@ class SessionRecorder:
                 raise ValueError(f"{self.root} was recorded with {key}={recorded.get(key)!r}, not "
                                  f"{settings.get(key)!r}: resume it with the same options")
         if not (self.root / "meta" / "episodes").is_dir() and (self.root / SESSIONS_CSV).is_file():
-            from rtv3_maniskill.records import RecordStore
-
             if RecordStore.read(self.root / SESSIONS_CSV, SESSION_FIELDS):
                 raise ValueError(f"{self.root}: sessions.csv lists trials but the dataset holds no episode")
 

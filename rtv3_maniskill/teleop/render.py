@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from rtv3_maniskill import ENV_ID
+
 RENDER_NICENESS = 10
 """The render process yields the CPU to the control loop (``os.nice``)."""
 
@@ -26,11 +28,10 @@ def _serve(connection: Any, make_kwargs: dict[str, Any]) -> None:
     # when SAPIEN creates its device) and a lower scheduling priority.
     os.environ.setdefault("LP_NUM_THREADS", "1")
     os.nice(RENDER_NICENESS)
+    # Imported here, in the spawned render process only: the simulator loads after the settings above,
+    # and the control process that imports this module pays nothing for them.
     import gymnasium as gym
     import torch
-
-    import rtv3_maniskill  # noqa: F401  (registers the task)
-    from rtv3_maniskill import ENV_ID
 
     torch.set_num_threads(1)
     env = gym.make(ENV_ID, obs_mode="state_dict", render_mode="rgb_array", reconfiguration_freq=0, **make_kwargs)
@@ -56,7 +57,7 @@ def _serve(connection: Any, make_kwargs: dict[str, Any]) -> None:
 
 
 def _pose(raw: np.ndarray) -> Any:
-    import sapien
+    import sapien  # the render process's, loaded by its env (see _serve)
 
     return sapien.Pose(p=raw[:3].tolist(), q=raw[3:7].tolist())
 

@@ -25,10 +25,12 @@ from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_spee
 from rtv3_maniskill.datagen.demonstrations import describe_grasp, state_vector
 from rtv3_maniskill.features import GRIPPER_CLOSED
 from rtv3_maniskill.shared_control.methods import make_method, method_spec
+from rtv3_maniskill.teleop.display import TeleopDisplay
 from rtv3_maniskill.teleop.grasp_actions import EVENTS, GraspActionConfig, GraspActions
 from rtv3_maniskill.teleop.grasp_trial import GraspTrialMonitor, TrialConfig
-from rtv3_maniskill.teleop.inputs import SimulatedOperator
-from rtv3_maniskill.teleop.render import scene_state
+from rtv3_maniskill.teleop.inputs import SimulatedOperator, make_input
+from rtv3_maniskill.teleop.recorder import SessionRecorder
+from rtv3_maniskill.teleop.render import RenderProcess, scene_state
 
 
 @dataclass
@@ -124,12 +126,11 @@ class TeleopSession:
     """Builds the env, method, input, window and recorder of a :class:`SessionConfig`; :meth:`run` plays it."""
 
     def __init__(self, config: SessionConfig) -> None:
-        from rtv3_maniskill.teleop.inputs import make_input
-
         self.config = config
         policy = None
         num_points, max_grasps = features.DEFAULT_NUM_POINTS, features.DEFAULT_MAX_GRASPS
         if method_spec(config.method).needs_policy:
+            # Lazy: the policy package loads LeRobot's config (~1.5 s), which a session without the prior skips.
             from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
 
             policy = load_policy(config.policy_path)
@@ -142,8 +143,6 @@ class TeleopSession:
         # Paced for a person, the window's frames are rendered in a process of their own (teleop_render).
         self.renderer = None
         if not config.headless and self._realtime:
-            from rtv3_maniskill.teleop.render import RenderProcess
-
             camera = render["human_render_camera_configs"]
             self.renderer = RenderProcess({**scene, "human_render_camera_configs": camera})
         self.env = SharedControlEnv(rendered_context=True, **scene, **render)
@@ -151,8 +150,6 @@ class TeleopSession:
         self.speed_limits = controller_speed_limits(self.env.base)
         self.display = None
         if not config.headless:  # the window opens once the scene can be shown
-            from rtv3_maniskill.teleop.display import TeleopDisplay
-
             self.display = TeleopDisplay()
         self.input = make_input(config.input, config.user_seed)
         self.simulated = isinstance(self.input, SimulatedOperator)
@@ -160,8 +157,6 @@ class TeleopSession:
         self.monitor = GraspTrialMonitor(self.env.base, config.trial_config)
         self.recorder = None
         if config.record is not None:
-            from rtv3_maniskill.teleop.recorder import SessionRecorder
-
             self.recorder = SessionRecorder(config.record, num_points, max_grasps, resume=config.resume, settings=dict(
                 method=config.method, input=config.input, participant=config.participant, scene_seed=config.scene_seed,
                 trials=config.trials, timeout_s=config.trial_config.timeout_s, scene_type=config.scene_type,

@@ -24,6 +24,7 @@ class CheckpointError(FileNotFoundError, ValueError):
 
 
 def _from_hub(repo_id: str) -> Path:
+    # Lazy: only a Hub repo id needs the Hub client (a PyTorch-only machine may lack it).
     from huggingface_hub import snapshot_download
     from huggingface_hub.errors import (
         HfHubHTTPError,
@@ -85,7 +86,8 @@ def load_policy(path: str | Path | None = None, device: str = "cpu") -> Any:
             read (the message names the file).
     """
     folder = resolve_checkpoint(path)
-    from lerobot.configs.policies import PreTrainedConfig  # loads LeRobot (~6 s)
+    # Lazy: these load LeRobot, which resolving a checkpoint (and training without LeRobot) must not.
+    from lerobot.configs.policies import PreTrainedConfig
 
     from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
     from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
