@@ -48,35 +48,35 @@ def _option(default: Any = MISSING, *, factory: Any = MISSING, help: str, **cli:
 
 
 def _default_methods() -> tuple[str, ...]:
-    # lazy: it loads torch, and the CLI's parser imports this module
+    # Lazy: it loads torch, and the CLI's parser imports this module.
     from rtv3_maniskill.shared_control.methods import DEFAULT_METHODS
 
     return DEFAULT_METHODS
 
 
 def _known_users() -> list[str]:
-    # lazy: it loads torch, and the CLI's parser imports this module
+    # Lazy: it loads torch, and the CLI's parser imports this module.
     from rtv3_maniskill.shared_control.simulated_users import USERS
 
     return list(USERS)
 
 
 def _known_methods() -> list[str]:
-    # lazy: it loads torch, and the CLI's parser imports this module
+    # Lazy: it loads torch, and the CLI's parser imports this module.
     from rtv3_maniskill.shared_control.methods import METHODS
 
     return [f"{name} ({spec.description})" for name, spec in METHODS.items()]
 
 
 def _known_fusions() -> list[str]:
-    # lazy: it loads torch, and the CLI's parser imports this module
+    # Lazy: it loads torch, and the CLI's parser imports this module.
     from rtv3_maniskill.shared_control.config import FUSION_PRESETS
 
     return list(FUSION_PRESETS)
 
 
 def _known_safety_filters() -> list[str]:
-    # lazy: it loads torch, and the CLI's parser imports this module
+    # Lazy: it loads torch, and the CLI's parser imports this module.
     from rtv3_maniskill.benchmarks.episodes import SAFETY_FILTERS
 
     return [name for name in SAFETY_FILTERS if name is not None]
@@ -144,7 +144,7 @@ class BenchmarkConfig:
              "named METHOD+neoss)")
 
     def __post_init__(self) -> None:
-        # lazy: they load torch, and the CLI's parser imports this module
+        # Lazy: they load torch, and the CLI's parser imports this module.
         from rtv3_maniskill.shared_control.methods import method_spec
         from rtv3_maniskill.shared_control.simulated_users import USERS
 
@@ -184,14 +184,14 @@ class BenchmarkConfig:
 
     def shared_control_config(self, max_linear_speed: float, max_angular_speed: float):
         """The RT-V3 controller's settings: the fusion preset, these overrides and the env's speed limits."""
-        # lazy: it loads torch, and the CLI's parser imports this module
+        # Lazy: it loads torch, and the CLI's parser imports this module.
         from rtv3_maniskill.shared_control.config import SharedControlConfig
 
         return SharedControlConfig.preset(self.fusion, max_linear_speed=max_linear_speed,
                                           max_angular_speed=max_angular_speed, **self.shared_control)
 
     def _specs(self) -> list:
-        # lazy: it loads torch, and the CLI's parser imports this module
+        # Lazy: it loads torch, and the CLI's parser imports this module.
         from rtv3_maniskill.shared_control.methods import METHODS
 
         return [METHODS[m] for m in self.methods]
