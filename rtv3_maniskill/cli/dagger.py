@@ -43,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rtv3_maniskill.datagen.dagger import DaggerConfig, run_dagger
+    from rtv3_maniskill.datagen.dagger import run_dagger
+    from rtv3_maniskill.datagen.dagger_config import DaggerConfig
     from rtv3_maniskill.scene_pool import SceneWorkerError
 
     resolve_scene_arguments(args)

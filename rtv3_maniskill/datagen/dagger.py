@@ -46,13 +46,7 @@ from tqdm import tqdm
 from rtv3_maniskill import ENV_ID, features
 from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_speed_limits
 from rtv3_maniskill.benchmarks.goals import check_scene_goals
-from rtv3_maniskill.datagen.dagger_config import (
-    DEFAULT_DRIVERS,
-    DRIVER_METHODS,
-    FAILURE_WINDOW_STEPS,
-    DaggerConfig,
-    parse_driver,
-)
+from rtv3_maniskill.datagen.dagger_config import FAILURE_WINDOW_STEPS, DaggerConfig, parse_driver
 from rtv3_maniskill.datagen.demonstrations import DemonstrationRecorder, state_vector
 from rtv3_maniskill.datagen.lerobot_export import StagedScene, StagingArea, export_lerobot_dataset
 from rtv3_maniskill.features import context_mask
@@ -304,5 +298,4 @@ def run_dagger(config: DaggerConfig, progress: bool = True, executor: str = "loc
     return summary
 
 
-__all__ = ["DEFAULT_DRIVERS", "DRIVER_METHODS", "FAILURE_WINDOW_STEPS", "DaggerCollector", "DaggerConfig", "Rollout",
-           "parse_driver", "relabel_steps", "run_dagger"]
+__all__ = ["DaggerCollector", "Rollout", "relabel_steps", "run_dagger"]

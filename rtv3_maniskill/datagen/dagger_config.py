@@ -10,7 +10,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-DRIVER_METHODS = ("direct", "rtv3")
 DEFAULT_DRIVERS = ("prior", "rtv3:noisy", "direct:noisy", "rtv3:laggy", "rtv3:mode_switching",
                    "rtv3:single_dof", "direct:single_dof", "rtv3:low_dof")
 """The prior alone, and simulated users through RT-V3 (what the shared-control prior must read) and Direct."""
@@ -24,16 +23,17 @@ def parse_driver(spec: str) -> tuple[str, str | None]:
     Raises:
         ValueError: unknown method or user (the message lists the known ones).
     """
-    # Lazy: it loads torch, and the CLI's parser imports this module.
+    # Lazy: they load torch, and the CLI's parser imports this module.
+    from rtv3_maniskill.shared_control.methods import UNINFORMED_METHODS
     from rtv3_maniskill.shared_control.simulated_users import USERS
 
     text = str(spec).strip().lower().replace("-", "_")
     if text == "prior":
         return "prior", None
     method, _, user = text.partition(":")
-    if method not in DRIVER_METHODS or user not in USERS:
+    if method not in UNINFORMED_METHODS or user not in USERS:
         raise ValueError(f"unknown DAgger driver {spec!r}: expected 'prior' or METHOD:USER with METHOD in "
-                         f"{DRIVER_METHODS} and USER in {sorted(USERS)}")
+                         f"{UNINFORMED_METHODS} and USER in {sorted(USERS)}")
     return method, user
 
 
@@ -105,4 +105,4 @@ class DaggerConfig:
                     **({"self_contacts": self.self_contacts} if not self.self_contacts else {}))
 
 
-__all__ = ["DEFAULT_DRIVERS", "DRIVER_METHODS", "FAILURE_WINDOW_STEPS", "DaggerConfig", "parse_driver"]
+__all__ = ["DEFAULT_DRIVERS", "FAILURE_WINDOW_STEPS", "DaggerConfig", "parse_driver"]

@@ -8,13 +8,8 @@ import numpy as np
 import pytest
 
 from rtv3_maniskill import features
-from rtv3_maniskill.datagen.dagger import (
-    FAILURE_WINDOW_STEPS,
-    DaggerConfig,
-    Rollout,
-    parse_driver,
-    relabel_steps,
-)
+from rtv3_maniskill.datagen.dagger import Rollout, relabel_steps
+from rtv3_maniskill.datagen.dagger_config import FAILURE_WINDOW_STEPS, DaggerConfig, parse_driver
 from rtv3_maniskill.datagen.lerobot_export import state_histories
 
 
@@ -57,8 +52,9 @@ def test_failure_relabels_come_from_the_last_second_of_a_failed_rollout():
 def test_unknown_driver_names_the_known_ones(tmp_path):
     assert parse_driver("prior") == ("prior", None)
     assert parse_driver("RTV3:single-dof") == ("rtv3", "single_dof")
+    assert parse_driver("ho:noisy") == ("ho", "noisy")
     with pytest.raises(ValueError, match="METHOD:USER"):
-        parse_driver("ho:noisy")
+        parse_driver("oracle:noisy")  # told the goal: not a driver
     with pytest.raises(ValueError, match="noisy"):
         DaggerConfig(output=tmp_path / "d", drivers=("direct:sleepy",))
 
