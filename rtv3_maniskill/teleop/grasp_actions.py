@@ -10,7 +10,7 @@ a scripted motion that runs to its end on its own (the person only watches):
 * ``release`` (B): hold still and open the gripper for ``open_steps`` (also aborts a motion).
 
 Other buttons pressed during a scripted motion are ignored. Gripper commands are ManiSkill's
-normalised Panda gripper action (:data:`GRIPPER_OPEN` = 1, :data:`GRIPPER_CLOSED` = -1).
+normalised Panda gripper action (``features.GRIPPER_OPEN`` = 1, ``features.GRIPPER_CLOSED`` = -1).
 """
 
 from __future__ import annotations
