@@ -85,6 +85,34 @@ def test_presets_set_the_scene_execution_contacts_and_goals_and_options_override
         get_preset("hard")
 
 
+def test_each_preset_runs_rtv3_with_its_own_fusion_and_fusion_overrides_it():
+    from rtv3_maniskill.benchmarks.shared_config import BenchmarkConfig
+    from rtv3_maniskill.cli.benchmark_shared import add_arguments, config_settings, shared_control_overrides
+    from rtv3_maniskill.shared_control.config import FUSION_PRESETS, SharedControlConfig
+
+    assert (PRESETS["paper"].fusion, PRESETS["easy"].fusion) == ("tuned_ycb", "tuned")
+    tuned, ycb = SharedControlConfig.preset("tuned"), SharedControlConfig.preset("tuned_ycb")
+    assert (tuned.prior_covariance_scale, ycb.prior_covariance_scale) == (100.0, 30.0)
+    assert {k: v for k, v in vars(ycb).items() if k != "prior_covariance_scale"} == {
+        k: v for k, v in vars(tuned).items() if k != "prior_covariance_scale"}
+    assert all(p.fusion in FUSION_PRESETS for p in PRESETS.values())
+    assert "fusion" not in PRESETS["paper"].env_kwargs()
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+
+    def fusion(*argv: str) -> tuple[str, float]:
+        args = parser.parse_args(list(argv))
+        config = BenchmarkConfig(**config_settings(args), **scene_settings(args),
+                                 shared_control=shared_control_overrides(args))
+        return config.fusion, config.shared_control_config(0.3, 1.2).prior_covariance_scale
+
+    assert fusion("--preset", "paper") == ("tuned_ycb", 30.0)
+    assert fusion("--preset", "easy") == ("tuned", 100.0)
+    assert fusion("--preset", "paper", "--fusion", "paper") == ("paper", 1.0)
+    assert fusion("--preset", "paper", "--prior-covariance-scale", "100") == ("tuned_ycb", 100.0)
+
+
 @pytest.mark.sim
 def test_tracked_execution_moves_the_arm_by_three_quarters_of_the_command():
     import gymnasium as gym

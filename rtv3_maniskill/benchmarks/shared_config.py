@@ -129,11 +129,12 @@ class BenchmarkConfig:
              "or reachable (only grasps the arm can reach without contact; easy); goals.csv holds the arm-reach "
              "check and summary.md counts both either way")
     fusion: str = _option(
-        "tuned", known=_known_fusions,
-        help="RT-V3 fusion preset (SharedControlConfig.preset; tuned was chosen on validation scenes: predictive "
-             "gate at alpha 0.99, recursive goal belief, prior covariance x100, a command's zero axes missing away "
-             "from the scene; paper: class-covariance gate at 0.85, no memory, x1; the options below override "
-             "single settings)")
+        "tuned", preset=True, known=_known_fusions,
+        help="RT-V3 fusion preset (default: the preset's; SharedControlConfig.preset): tuned (easy; chosen on its "
+             "validation scenes: predictive gate at alpha 0.99, recursive goal belief, prior covariance x100, a "
+             "command's zero axes missing away from the scene), tuned_ycb (paper; the same with the prior "
+             "covariance x30, chosen on the paper preset's validation scenes), paper (the paper's reading: "
+             "class-covariance gate at 0.85, no memory, x1); the options below override single settings")
     shared_control: dict[str, Any] = _option(
         factory=dict, option=False,
         help="overrides of SharedControlConfig fields for the methods that run RT-V3's fusion (e.g. "

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
+from rtv3_maniskill.presets import get_preset
 
 if TYPE_CHECKING:
     import numpy as np
@@ -50,8 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(parser, default_preset="paper")
     parser.add_argument("--output", type=Path, default=Path("outputs/demo"), help="folder for demo.mp4 and demo.png")
     parser.add_argument("--no-video", action="store_true", help="skip rendering the video")
-    parser.add_argument("--fusion", choices=["tuned", "paper"], default="tuned",
-                        help="RT-V3 fusion preset: tuned (default) or the paper's reading")
+    parser.add_argument("--fusion", choices=["tuned", "tuned_ycb", "paper"], default=None,
+                        help="RT-V3 fusion preset: tuned (chosen on the easy preset's scenes), tuned_ycb (on the "
+                             "paper preset's) or the paper's reading; default: the preset's")
     parser.add_argument("--safety-filter", choices=["neoss"], default=None,
                         help="put the NEO collision damper in front of both methods (the paper's 'w. NeoSS')")
 
@@ -261,7 +263,7 @@ def run(args: argparse.Namespace) -> int:
     limits = controller_speed_limits(base)
     from rtv3_maniskill.shared_control import SharedControlConfig
 
-    fusion = SharedControlConfig.preset(args.fusion)
+    fusion = SharedControlConfig.preset(args.fusion or get_preset(args.preset).fusion)
     rtv3 = run_episode(env, make_method("rtv3", limits, policy=policy, config=fusion),
                        make_user(args.user, args.user_seed, pauses=args.pauses),
                        max_steps=args.max_steps, record_frames=can_render, seed=args.seed, options=options)

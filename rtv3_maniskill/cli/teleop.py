@@ -19,6 +19,7 @@ from rtv3_maniskill.cli.scene_args import (
     push_if_asked,
     scene_settings,
 )
+from rtv3_maniskill.presets import get_preset
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -92,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
         method=args.method, input=args.input, scene_seed=args.scene_seed, trials=args.trials,
         participant=args.participant, record=args.record, resume=args.resume, headless=args.headless,
         realtime=None if args.realtime == "auto" else args.realtime == "on", policy_path=args.policy_path,
-        **scene_settings(args), target_grasp=args.target_grasp, user_seed=args.user_seed,
+        **scene_settings(args), fusion=get_preset(args.preset).fusion, target_grasp=args.target_grasp,
+        user_seed=args.user_seed,
         screenshot=args.screenshot, screenshot_step=args.screenshot_step,
         trial_config=TrialConfig(timeout_s=args.timeout),
     )

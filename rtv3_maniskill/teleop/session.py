@@ -24,6 +24,7 @@ from rtv3_maniskill import features, se3
 from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_speed_limits, render_frame
 from rtv3_maniskill.datagen.demonstrations import describe_grasp, state_vector
 from rtv3_maniskill.features import GRIPPER_CLOSED
+from rtv3_maniskill.shared_control.config import SharedControlConfig
 from rtv3_maniskill.shared_control.methods import make_method, method_spec
 from rtv3_maniskill.teleop.display import TeleopDisplay
 from rtv3_maniskill.teleop.grasp_actions import EVENTS, GraspActionConfig, GraspActions
@@ -54,6 +55,8 @@ class SessionConfig:
     execution: str = "capped"
     """How the env executes the assisted twist (``rtv3_maniskill.presets.EXECUTIONS``)."""
     self_contacts: bool = True
+    fusion: str = "tuned"
+    """RT-V3's fusion preset (``SharedControlConfig.preset``; ``rtv3 teleop`` takes the scene preset's)."""
     target_grasp: int | None = None
     init_qpos: np.ndarray | None = None
     """Start joint positions (7,) instead of the rest pose (e.g. IK of the pre-grasp)."""
@@ -146,7 +149,8 @@ class TeleopSession:
             camera = render["human_render_camera_configs"]
             self.renderer = RenderProcess({**scene, "human_render_camera_configs": camera})
         self.env = SharedControlEnv(rendered_context=True, **scene, **render)
-        self.env.method = make_method(config.method, controller_speed_limits(self.env.base), policy=policy)
+        self.env.method = make_method(config.method, controller_speed_limits(self.env.base), policy=policy,
+                                      config=SharedControlConfig.preset(config.fusion))
         self.speed_limits = controller_speed_limits(self.env.base)
         self.display = None
         if not config.headless:  # the window opens once the scene can be shown
@@ -160,7 +164,8 @@ class TeleopSession:
             self.recorder = SessionRecorder(config.record, num_points, max_grasps, resume=config.resume, settings=dict(
                 method=config.method, input=config.input, participant=config.participant, scene_seed=config.scene_seed,
                 trials=config.trials, timeout_s=config.trial_config.timeout_s, scene_type=config.scene_type,
-                **({"object_source": config.object_source} if config.object_source != "procedural" else {})))
+                **({"object_source": config.object_source} if config.object_source != "procedural" else {}),
+                **({"fusion": config.fusion} if config.fusion != "tuned" else {})))
         self.quit = False
         self.interrupted = False
         """Ctrl-C came: the trial in progress ends as ``aborted`` (recorded as Esc would) and the session ends."""

@@ -129,15 +129,15 @@ def test_benchmark_shared_turns_the_goal_belief_off_or_sets_its_margin(tmp_path)
     import argparse
 
     from rtv3_maniskill.benchmarks.shared_config import BenchmarkConfig
-    from rtv3_maniskill.cli.benchmark_shared import add_arguments, shared_control_overrides
+    from rtv3_maniskill.cli.benchmark_shared import add_arguments, config_settings, shared_control_overrides
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
 
     def margin(*argv: str) -> float | None:
         args = parser.parse_args(list(argv))
-        config = BenchmarkConfig(output=tmp_path, methods=["rtv3"], users=["noisy"], fusion=args.fusion,
-                                 shared_control=shared_control_overrides(args))
+        config = BenchmarkConfig(output=tmp_path, methods=["rtv3"], users=["noisy"],
+                                 fusion=config_settings(args)["fusion"], shared_control=shared_control_overrides(args))
         return config.shared_control_config(0.3, 1.2).goal_belief_margin
 
     assert margin() == 1.0  # tuned
