@@ -17,11 +17,11 @@ from rtv3_maniskill.cli.scene_args import (
     push_if_asked,
     resolve_scene_arguments,
 )
+from rtv3_maniskill.datagen.dagger_config import DEFAULT_DRIVERS, FAILURE_WINDOW_STEPS, DaggerConfig
+from rtv3_maniskill.presets import get_preset
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from rtv3_maniskill.datagen.dagger_config import DEFAULT_DRIVERS, FAILURE_WINDOW_STEPS
-
     parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
                         help="checkpoint whose closed loop is rolled out (default: the shipped one)")
     parser.add_argument("--output", type=Path, required=True, help="dataset folder (LeRobot root)")
@@ -42,12 +42,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_push_argument(parser)
 
 
+def dagger_config(args: argparse.Namespace) -> DaggerConfig:
+    """The round's settings from the parsed options (the preset's scenes, execution and RT-V3 fusion).
+
+    Raises:
+        ValueError: a bad option (the message names it).
+    """
+    resolve_scene_arguments(args)
+    return DaggerConfig(
+        output=args.output, policy_path=args.policy_path, scenes=args.num_scenes, seed=args.seed,
+        drivers=tuple(d for d in args.drivers.split(",") if d.strip()),
+        targets_per_scene=args.targets_per_scene or None, relabels_per_rollout=args.relabels_per_rollout,
+        failure_relabels=args.failure_relabels, scene_type=args.scene_type, objects=args.objects,
+        execution=args.execution, self_contacts=args.self_contacts, fusion=get_preset(args.preset).fusion,
+        plan_timeout=args.plan_timeout, workers=args.workers)
+
+
 def run(args: argparse.Namespace) -> int:
     from rtv3_maniskill.datagen.dagger import run_dagger
-    from rtv3_maniskill.datagen.dagger_config import DaggerConfig
     from rtv3_maniskill.scene_pool import SceneWorkerError
 
-    resolve_scene_arguments(args)
     check_push_argument(args)
 
     from rtv3_maniskill.policies.rtv3.checkpoints import CheckpointError, resolve_checkpoint
@@ -57,13 +71,7 @@ def run(args: argparse.Namespace) -> int:
     except CheckpointError as err:
         raise SystemExit(f"error: {err}") from None
     try:
-        config = DaggerConfig(
-            output=args.output, policy_path=args.policy_path, scenes=args.num_scenes, seed=args.seed,
-            drivers=tuple(d for d in args.drivers.split(",") if d.strip()),
-            targets_per_scene=args.targets_per_scene or None, relabels_per_rollout=args.relabels_per_rollout,
-            failure_relabels=args.failure_relabels,
-            scene_type=args.scene_type, objects=args.objects, execution=args.execution,
-            self_contacts=args.self_contacts, plan_timeout=args.plan_timeout, workers=args.workers)
+        config = dagger_config(args)
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     if not config.output.parent.is_dir():

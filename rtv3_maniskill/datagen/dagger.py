@@ -56,6 +56,7 @@ from rtv3_maniskill.robot.planner import PandaPlanner
 from rtv3_maniskill.robot.scene_geometry import READY_QPOS
 from rtv3_maniskill.robot.starts import random_start_configuration
 from rtv3_maniskill.scene_pool import run_scenes
+from rtv3_maniskill.shared_control.config import SharedControlConfig
 from rtv3_maniskill.shared_control.methods import make_method
 from rtv3_maniskill.shared_control.simulated_users import make_user
 
@@ -142,7 +143,8 @@ class DaggerCollector:
             q0 = READY_QPOS if q0 is None else q0
         else:  # the shared-control benchmark's: the ready pose
             q0 = READY_QPOS
-        method = None if method_name == "prior" else make_method(method_name, self.speed_limits, policy=self.policy)
+        method = None if method_name == "prior" else make_method(
+            method_name, self.speed_limits, policy=self.policy, config=SharedControlConfig.preset(self.config.fusion))
         if method is not None:
             self.env.method = method
         obs, info = self.env.reset(seed=self.scene_seed, options=dict(target_grasp_index=grasp, init_qpos=q0))

@@ -74,6 +74,9 @@ class DaggerConfig:
     """How the rollouts' env executes twists (``rtv3_maniskill.presets.EXECUTIONS``)."""
     self_contacts: bool = True
     """Whether a robot self contact ends a rollout as a collision."""
+    fusion: str = "tuned"
+    """RT-V3's fusion for the ``rtv3:USER`` drivers (a ``shared_control.config.FUSION_PRESETS`` name; ``rtv3
+    dagger`` passes the preset's), so that the relabelled states are the ones the benchmark's RT-V3 visits."""
     workers: int = 1
 
     def __post_init__(self) -> None:
@@ -92,6 +95,11 @@ class DaggerConfig:
             raise ValueError(f"failure_relabels must be >= 0, got {self.failure_relabels}")
         if self.min_step < 1:
             raise ValueError(f"min_step must be >= 1, got {self.min_step}")
+        # Lazy: it loads torch, and the CLI's parser imports this module.
+        from rtv3_maniskill.shared_control.config import FUSION_PRESETS
+
+        if self.fusion not in FUSION_PRESETS:
+            raise ValueError(f"unknown fusion {self.fusion!r}; expected one of {', '.join(FUSION_PRESETS)}")
 
     def settings(self, num_points: int, max_grasps: int) -> dict[str, Any]:
         """What a resumed run must share (the dataset format and the rollouts' definition)."""
@@ -102,7 +110,8 @@ class DaggerConfig:
                     min_step=self.min_step, max_steps=self.max_steps, policy=str(self.policy_path or "shipped"),
                     # Only when set, so that rounds made before these options existed still resume.
                     **({"execution": self.execution} if self.execution != "capped" else {}),
-                    **({"self_contacts": self.self_contacts} if not self.self_contacts else {}))
+                    **({"self_contacts": self.self_contacts} if not self.self_contacts else {}),
+                    **({"fusion": self.fusion} if self.fusion != "tuned" else {}))
 
 
 __all__ = ["DEFAULT_DRIVERS", "FAILURE_WINDOW_STEPS", "DaggerConfig", "parse_driver"]

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 
 import numpy as np
 import pytest
 
 from rtv3_maniskill import features
+from rtv3_maniskill.cli.dagger import add_arguments, dagger_config
 from rtv3_maniskill.datagen.dagger import Rollout, relabel_steps
 from rtv3_maniskill.datagen.dagger_config import FAILURE_WINDOW_STEPS, DaggerConfig, parse_driver
 from rtv3_maniskill.datagen.lerobot_export import state_histories
@@ -57,6 +59,20 @@ def test_unknown_driver_names_the_known_ones(tmp_path):
         parse_driver("oracle:noisy")  # told the goal: not a driver
     with pytest.raises(ValueError, match="noisy"):
         DaggerConfig(output=tmp_path / "d", drivers=("direct:sleepy",))
+
+
+def test_rtv3_drivers_run_the_presets_fusion_and_a_round_records_it(tmp_path):
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    paper = dagger_config(parser.parse_args(["--output", str(tmp_path / "d"), "--preset", "paper"]))
+    easy = dagger_config(parser.parse_args(["--output", str(tmp_path / "d"), "--preset", "easy"]))
+    assert (paper.fusion, easy.fusion) == ("tuned_ycb", "tuned")
+    assert (paper.objects, paper.scene_type) == ("ycb", "packed_ycb")
+    # A round made with another fusion relabels other states: resuming it under this one is refused.
+    assert paper.settings(512, 64)["fusion"] == "tuned_ycb"
+    assert "fusion" not in easy.settings(512, 64)  # rounds made before the option resume unchanged
+    with pytest.raises(ValueError, match="unknown fusion 'gentle'.*tuned_ycb"):
+        DaggerConfig(output=tmp_path / "d", fusion="gentle")
 
 
 @pytest.mark.sim
