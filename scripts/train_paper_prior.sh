@@ -34,7 +34,14 @@ DEVICE=${DEVICE:-cpu}
 OUT=${OUT:-outputs/paper_prior}
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 bash scripts/setup.sh
-source scripts/datasets_cache.sh
+# LeRobot reads datasets through Hugging Face `datasets`, which keeps an uncompressed copy of each one in
+# ~/.cache/huggingface/datasets for good; unless HF_DATASETS_CACHE is set, this recipe keeps its copies in
+# outputs/hf_datasets_cache and removes them when it ends.
+if [[ -z ${HF_DATASETS_CACHE:-} ]]; then
+  export HF_DATASETS_CACHE="$PWD/outputs/hf_datasets_cache"
+  mkdir -p "$HF_DATASETS_CACHE"
+  trap 'rm -rf "$HF_DATASETS_CACHE"' EXIT
+fi
 mkdir -p data "$OUT"
 rtv3=.venv/bin/rtv3
 
