@@ -108,6 +108,8 @@ class DaggerCollector:
         self.env = SharedControlEnv(rendered_context=True, max_episode_steps=config.max_steps + 10,
                                     execution=config.execution, self_contacts=config.self_contacts, **sizes)
         self.speed_limits = controller_speed_limits(self.env.base)
+        self.fusion = SharedControlConfig.preset(config.fusion)
+        """RT-V3's fusion for the ``rtv3:USER`` drivers (``make_method`` sets its speed limits)."""
         expert_env = gym.make(ENV_ID, obs_mode="state_dict", control_mode="pd_joint_pos_vel",
                               reconfiguration_freq=0, max_episode_steps=10_000, **sizes)
         self.recorder = DemonstrationRecorder(expert_env, PandaPlanner, plan_timeout=config.plan_timeout)
@@ -143,8 +145,8 @@ class DaggerCollector:
             q0 = READY_QPOS if q0 is None else q0
         else:  # the shared-control benchmark's: the ready pose
             q0 = READY_QPOS
-        method = None if method_name == "prior" else make_method(
-            method_name, self.speed_limits, policy=self.policy, config=SharedControlConfig.preset(self.config.fusion))
+        method = None if method_name == "prior" else make_method(method_name, self.speed_limits, policy=self.policy,
+                                                                 config=self.fusion)
         if method is not None:
             self.env.method = method
         obs, info = self.env.reset(seed=self.scene_seed, options=dict(target_grasp_index=grasp, init_qpos=q0))

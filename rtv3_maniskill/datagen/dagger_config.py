@@ -95,11 +95,11 @@ class DaggerConfig:
             raise ValueError(f"failure_relabels must be >= 0, got {self.failure_relabels}")
         if self.min_step < 1:
             raise ValueError(f"min_step must be >= 1, got {self.min_step}")
-        # Lazy: it loads torch, and the CLI's parser imports this module.
-        from rtv3_maniskill.shared_control.config import FUSION_PRESETS
+        # Lazy: it loads torch, and the CLI's parser imports this module. Checked here, before any
+        # worker starts, by the lookup the rollouts use (its error names the known fusions).
+        from rtv3_maniskill.shared_control.config import SharedControlConfig
 
-        if self.fusion not in FUSION_PRESETS:
-            raise ValueError(f"unknown fusion {self.fusion!r}; expected one of {', '.join(FUSION_PRESETS)}")
+        SharedControlConfig.preset(self.fusion)
 
     def settings(self, num_points: int, max_grasps: int) -> dict[str, Any]:
         """What a resumed run must share (the dataset format and the rollouts' definition)."""

@@ -71,7 +71,7 @@ def test_rtv3_drivers_run_the_presets_fusion_and_a_round_records_it(tmp_path):
     # A round made with another fusion relabels other states: resuming it under this one is refused.
     assert paper.settings(512, 64)["fusion"] == "tuned_ycb"
     assert "fusion" not in easy.settings(512, 64)  # rounds made before the option resume unchanged
-    with pytest.raises(ValueError, match="unknown fusion 'gentle'.*tuned_ycb"):
+    with pytest.raises(ValueError, match="unknown fusion preset 'gentle'.*tuned_ycb"):
         DaggerConfig(output=tmp_path / "d", fusion="gentle")
 
 
