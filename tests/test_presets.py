@@ -113,6 +113,30 @@ def test_each_preset_runs_rtv3_with_its_own_fusion_and_fusion_overrides_it():
     assert fusion("--preset", "paper", "--prior-covariance-scale", "100") == ("tuned_ycb", 100.0)
 
 
+@pytest.mark.parametrize("command", ["demo", "teleop", "dagger"])
+def test_commands_running_rtv3_take_the_presets_fusion_and_fusion_overrides_it(command, tmp_path, capsys):
+    from rtv3_maniskill.cli import main
+    from rtv3_maniskill.cli.dagger import add_arguments as dagger_arguments
+    from rtv3_maniskill.cli.demo import add_arguments as demo_arguments
+    from rtv3_maniskill.cli.scene_args import fusion_name
+    from rtv3_maniskill.cli.teleop import add_arguments as teleop_arguments
+
+    parser = argparse.ArgumentParser()
+    dict(demo=demo_arguments, teleop=teleop_arguments, dagger=dagger_arguments)[command](parser)
+    required = ["--output", str(tmp_path / "d")] if command == "dagger" else []
+
+    def fusion(*argv: str) -> str:
+        return fusion_name(parser.parse_args([*required, *argv]))
+
+    assert fusion("--preset", "paper") == "tuned_ycb"
+    assert fusion("--preset", "easy") == "tuned"
+    assert fusion("--preset", "paper", "--fusion", "paper") == "paper"
+    # An unknown name stops the command before it builds a scene, with the known names in the message.
+    extra = dict(demo=["--no-video"], teleop=["--headless", "--input", "simulated:noisy"], dagger=[])[command]
+    with pytest.raises(SystemExit, match="unknown fusion preset 'gentle'; known: tuned, tuned_ycb, paper"):
+        main([command, *required, *extra, "--fusion", "gentle"])
+
+
 @pytest.mark.sim
 def test_tracked_execution_moves_the_arm_by_three_quarters_of_the_command():
     import gymnasium as gym

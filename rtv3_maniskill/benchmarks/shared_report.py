@@ -4,7 +4,8 @@
 (:func:`~rtv3_maniskill.benchmarks.shared_statistics.summarize`): ``summary.csv`` holds the numbers,
 ``summary.md`` a table with the methods' labels (:data:`~rtv3_maniskill.shared_control.methods.METHODS`),
 each method paired with Direct, the paper's Table II success rates beside, the goal counts of
-``goals.csv`` above and the shares of the oracles' gains below; ``success_rates.png`` plots SR and CR
+``goals.csv`` above and the shares of the oracles' gains below (under the goal rule ``all``, also the success
+rate on the goals of each arm-reach check); ``success_rates.png`` plots SR and CR
 per user and method.
 """
 
@@ -20,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from rtv3_maniskill.benchmarks.shared_results import goal_rows, read_results
-from rtv3_maniskill.benchmarks.shared_statistics import SUMMARY_FIELDS, summarize
+from rtv3_maniskill.benchmarks.shared_statistics import SUMMARY_FIELDS, success_by_goal_check, summarize
 from rtv3_maniskill.shared_control.methods import CEILINGS, METHODS
 
 PAPER_TABLE2_SR = {
@@ -60,17 +61,19 @@ def _paper_text(s: dict[str, Any]) -> str:
     paper = PAPER_TABLE2_SR.get(s["user"], {}).get(s["method"])
     return "-" if paper is None else f"{paper:.1f}"
 
-def goal_counts(path: Path) -> dict[str, int]:
-    """Candidates per goal check (``goals.csv``), plus ``candidates`` and ``scenes``."""
-    rows = goal_rows(path)
+def goal_counts(rows: Sequence[dict[str, str]]) -> dict[str, int]:
+    """Candidates per goal check (the rows of ``goals.csv``), plus ``candidates`` and ``scenes``."""
     counts = {check: sum(1 for r in rows if r["check"] == check) for check in sorted({r["check"] for r in rows})}
     return dict(counts, candidates=len(rows), scenes=len({r["scene_seed"] for r in rows}))
 
 
 def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | None = None,
-                     goal_rule: str = "reachable") -> str:
+                     goal_rule: str = "reachable",
+                     by_check: dict[tuple[str, str], dict[str, tuple[int, float]]] | None = None) -> str:
     """Markdown table: one row per (user, method), paired with Direct, the paper's SR beside; the goal
-    counts of ``goals.csv`` under ``goal_rule`` above it."""
+    counts of ``goals.csv`` under ``goal_rule`` above it; below, the shares of the ceilings' gains and,
+    with ``by_check`` (:func:`~rtv3_maniskill.benchmarks.shared_statistics.success_by_goal_check`),
+    the success rate per goal check."""
     lines = []
     if goals and goals.get("candidates"):
         infeasible = ", ".join(f"{v} {k}" for k, v in goals.items() if k not in ("feasible", "candidates", "scenes"))
@@ -118,7 +121,25 @@ def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | 
             interval = "-" if low is None else f"{_percent(low)} to {_percent(high)}"
             share = _percent(s[f"{ceiling}_gain_share"])
             notes += f"| {s['user']} | {method_label(s['method'])} | {share} | {interval} |\n"
-    return "\n".join(lines) + "\n" + notes
+    return "\n".join(lines) + "\n" + notes + _by_check_markdown(summary, by_check or {})
+
+
+def _by_check_markdown(summary: Sequence[dict[str, Any]],
+                       by_check: dict[tuple[str, str], dict[str, tuple[int, float]]]) -> str:
+    """The SR per goal check, one row per (user, method) of ``summary``; empty with fewer than two checks."""
+    checks = sorted({c for cells in by_check.values() for c in cells}, key=lambda c: (c != "feasible", c))
+    if len(checks) < 2:
+        return ""
+    text = ("\nSR % by the goal's arm-reach check (trials in brackets): `feasible` goals are those the rule "
+            "`reachable` keeps; `no_ik_pregrasp`: no collision-free IK solution was found at the exact pre-grasp "
+            "(a trial succeeds within pose distance 0.1 of it); `blocked_approach`: the straight 5 cm approach "
+            "from it collides:\n\n"
+            f"| User | Method | {' | '.join(checks)} |\n|---|---|{'---:|' * len(checks)}\n")
+    for s in summary:
+        cells = by_check.get((s["user"], s["method"]), {})
+        text += (f"| {s['user']} | {method_label(s['method'])} | "
+                 + " | ".join(f"{_fmt(cells[c][1])} ({cells[c][0]})" if c in cells else "-" for c in checks) + " |\n")
+    return text
 
 
 def plot_success_rates(summary: Sequence[dict[str, Any]], path: Path) -> None:
@@ -165,7 +186,12 @@ def write_summaries(output: Path, users: Sequence[str] | None = None,
             writer.writerow({k: (f"{v:.3f}" if isinstance(v, float) else v) for k, v in s.items()})
     config_path = output / "config.json"
     goal_rule = json.loads(config_path.read_text()).get("goals", "reachable") if config_path.is_file() else "reachable"
-    (output / "summary.md").write_text(summary_markdown(summary, goal_counts(output / "goals.csv"), goal_rule))
+    goals = goal_rows(output / "goals.csv")
+    by_check = None
+    if goal_rule == "all":
+        checks = {(int(g["scene_seed"]), int(g["grasp_index"])): g["check"] for g in goals}
+        by_check = success_by_goal_check(rows, checks)
+    (output / "summary.md").write_text(summary_markdown(summary, goal_counts(goals), goal_rule, by_check))
     if summary:
         plot_success_rates(summary, output / "success_rates.png")
     return summary

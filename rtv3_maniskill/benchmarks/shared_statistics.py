@@ -151,6 +151,23 @@ def summarize(rows: Iterable[dict[str, Any]], users: Sequence[str] | None = None
     return out
 
 
+def success_by_goal_check(rows: Iterable[dict[str, Any]], checks: dict[tuple[int, int], str]
+                          ) -> dict[tuple[str, str], dict[str, tuple[int, float]]]:
+    """``{(user, method): {check: (trials, SR %)}}``: the success rate on the goals of each arm-reach
+    check (``checks``: ``{(scene_seed, grasp_index): check}`` from ``goals.csv``; a trial whose goal has
+    no check is left out). Under the goal rule ``all`` it separates the goals the arm can reach from
+    those it cannot."""
+    counts: dict[tuple[str, str], dict[str, list[int]]] = {}
+    for row in rows:
+        check = checks.get((int(row["scene_seed"]), int(row["grasp_index"])))
+        if check is None:
+            continue
+        tally = counts.setdefault((row["user"], row["method"]), {}).setdefault(check, [0, 0])
+        tally[0] += 1
+        tally[1] += row["outcome"] == "success"
+    return {key: {c: (n, 100.0 * won / n) for c, (n, won) in by_check.items()} for key, by_check in counts.items()}
+
+
 def _share_fields(share: dict[str, Any] | None, ceiling: str = "oracle") -> dict[str, Any]:
     """The summary's columns of :func:`oracle_gain_share` towards ``ceiling`` (None where it has no entry)."""
     share = share or {}

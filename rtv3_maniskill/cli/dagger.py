@@ -11,14 +11,15 @@ from pathlib import Path
 
 from rtv3_maniskill.cli.scene_args import (
     add_executor_arguments,
+    add_fusion_argument,
     add_push_argument,
     add_scene_arguments,
     check_push_argument,
+    fusion_name,
     push_if_asked,
     resolve_scene_arguments,
 )
 from rtv3_maniskill.datagen.dagger_config import DEFAULT_DRIVERS, FAILURE_WINDOW_STEPS, DaggerConfig
-from rtv3_maniskill.presets import get_preset
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"states re-planned from the last {FAILURE_WINDOW_STEPS} steps of a failed rollout "
                              "instead (0: spread like the others)")
     add_scene_arguments(parser)
+    add_fusion_argument(parser)
     parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")
     parser.add_argument("--workers", type=int, default=1, help="parallel CPU workers (processes or Ray actors)")
     add_executor_arguments(parser)
@@ -54,7 +56,7 @@ def dagger_config(args: argparse.Namespace) -> DaggerConfig:
         drivers=tuple(d for d in args.drivers.split(",") if d.strip()),
         targets_per_scene=args.targets_per_scene or None, relabels_per_rollout=args.relabels_per_rollout,
         failure_relabels=args.failure_relabels, scene_type=args.scene_type, objects=args.objects,
-        execution=args.execution, self_contacts=args.self_contacts, fusion=get_preset(args.preset).fusion,
+        execution=args.execution, self_contacts=args.self_contacts, fusion=fusion_name(args),
         plan_timeout=args.plan_timeout, workers=args.workers)
 
 

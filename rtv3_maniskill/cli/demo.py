@@ -14,8 +14,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
-from rtv3_maniskill.presets import get_preset
+from rtv3_maniskill.cli.scene_args import add_fusion_argument, add_scene_arguments, fusion_name, scene_settings
 
 if TYPE_CHECKING:
     import numpy as np
@@ -51,9 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(parser, default_preset="paper")
     parser.add_argument("--output", type=Path, default=Path("outputs/demo"), help="folder for demo.mp4 and demo.png")
     parser.add_argument("--no-video", action="store_true", help="skip rendering the video")
-    parser.add_argument("--fusion", choices=["tuned", "tuned_ycb", "paper"], default=None,
-                        help="RT-V3 fusion preset: tuned (chosen on the easy preset's scenes), tuned_ycb (on the "
-                             "paper preset's) or the paper's reading; default: the preset's")
+    add_fusion_argument(parser)
     parser.add_argument("--safety-filter", choices=["neoss"], default=None,
                         help="put the NEO collision damper in front of both methods (the paper's 'w. NeoSS')")
 
@@ -227,6 +224,7 @@ def run(args: argparse.Namespace) -> int:
 
     from rtv3_maniskill.benchmarks.episodes import controller_speed_limits, run_episode
     from rtv3_maniskill.policies.rtv3.checkpoints import load_policy
+    from rtv3_maniskill.shared_control import SharedControlConfig
     from rtv3_maniskill.shared_control.methods import make_method
     from rtv3_maniskill.shared_control.simulated_users import make_user
 
@@ -235,6 +233,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"error: --max-steps must be >= 1, got {args.max_steps}")
     try:
         make_user(args.user, pauses=args.pauses)
+        fusion = SharedControlConfig.preset(fusion_name(args))
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     try:
@@ -261,9 +260,6 @@ def run(args: argparse.Namespace) -> int:
           f"up to {args.max_steps} steps")
 
     limits = controller_speed_limits(base)
-    from rtv3_maniskill.shared_control import SharedControlConfig
-
-    fusion = SharedControlConfig.preset(args.fusion or get_preset(args.preset).fusion)
     rtv3 = run_episode(env, make_method("rtv3", limits, policy=policy, config=fusion),
                        make_user(args.user, args.user_seed, pauses=args.pauses),
                        max_steps=args.max_steps, record_frames=can_render, seed=args.seed, options=options)

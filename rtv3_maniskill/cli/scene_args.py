@@ -1,9 +1,10 @@
-"""The options the commands share: ``--preset`` and the settings it fills in, the scene pool's
-executor, and ``--push-to-hub``.
+"""The options the commands share: ``--preset`` and the settings it fills in, RT-V3's ``--fusion``,
+the scene pool's executor, and ``--push-to-hub``.
 
 ``--preset paper`` (the authors' protocol) or ``--preset easy`` sets the layout, the object set,
 the twist execution and the contact rule (and, for the benchmark, the goal rule); an explicit
-``--scene-type``, ``--objects``, ``--execution`` or ``--self-contacts`` overrides the preset's value.
+``--scene-type``, ``--objects``, ``--execution`` or ``--self-contacts`` overrides the preset's value,
+and ``--fusion`` the preset's RT-V3 fusion (``tuned_ycb`` for paper, ``tuned`` for easy).
 """
 
 from __future__ import annotations
@@ -39,6 +40,20 @@ def add_scene_arguments(parser: argparse.ArgumentParser, default_preset: str = "
                              "tracked (the authors': 0.75 of the command per step, no speed cap)")
     parser.add_argument("--self-contacts", choices=("count", "ignore"), default=None,
                         help="whether a robot self contact is a collision (default: the preset's; paper: ignore)")
+
+
+def add_fusion_argument(parser: argparse.ArgumentParser) -> None:
+    """``--fusion``: RT-V3's fusion preset (default None: the scene preset's, :func:`fusion_name`)."""
+    parser.add_argument("--fusion", default=None,
+                        help="RT-V3 fusion preset (SharedControlConfig.preset): tuned (chosen on the easy preset's "
+                             "scenes), tuned_ycb (on the paper preset's) or paper (the paper's reading); default: the "
+                             "scene preset's")
+
+
+def fusion_name(args: argparse.Namespace) -> str:
+    """RT-V3's fusion preset of the parsed options: ``--fusion``, else the scene preset's. The name is
+    checked where the fusion is built (``SharedControlConfig.preset``: a clear error naming the known ones)."""
+    return getattr(args, "fusion", None) or get_preset(args.preset).fusion
 
 
 def add_executor_arguments(parser: argparse.ArgumentParser) -> None:

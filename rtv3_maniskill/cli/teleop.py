@@ -13,13 +13,14 @@ from pathlib import Path
 
 from rtv3_maniskill.cli import UsageError
 from rtv3_maniskill.cli.scene_args import (
+    add_fusion_argument,
     add_push_argument,
     add_scene_arguments,
     check_push_argument,
+    fusion_name,
     push_if_asked,
     scene_settings,
 )
-from rtv3_maniskill.presets import get_preset
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,6 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--realtime", choices=["auto", "on", "off"], default="auto",
                         help="pace at 20 Hz (auto: on for a person, off for a simulated user)")
     add_scene_arguments(parser, default_preset="paper")
+    add_fusion_argument(parser)
     parser.add_argument("--target-grasp", type=int, default=None, help="target grasp index (default: drawn)")
     parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
                         help="RT-V3 checkpoint folder (default: the bundled one)")
@@ -93,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
         method=args.method, input=args.input, scene_seed=args.scene_seed, trials=args.trials,
         participant=args.participant, record=args.record, resume=args.resume, headless=args.headless,
         realtime=None if args.realtime == "auto" else args.realtime == "on", policy_path=args.policy_path,
-        **scene_settings(args), fusion=get_preset(args.preset).fusion, target_grasp=args.target_grasp,
+        **scene_settings(args), fusion=fusion_name(args), target_grasp=args.target_grasp,
         user_seed=args.user_seed,
         screenshot=args.screenshot, screenshot_step=args.screenshot_step,
         trial_config=TrialConfig(timeout_s=args.timeout),

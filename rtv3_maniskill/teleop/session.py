@@ -130,6 +130,7 @@ class TeleopSession:
 
     def __init__(self, config: SessionConfig) -> None:
         self.config = config
+        fusion = SharedControlConfig.preset(config.fusion)  # an unknown name fails before anything starts
         policy = None
         num_points, max_grasps = features.DEFAULT_NUM_POINTS, features.DEFAULT_MAX_GRASPS
         if method_spec(config.method).needs_policy:
@@ -150,7 +151,7 @@ class TeleopSession:
             self.renderer = RenderProcess({**scene, "human_render_camera_configs": camera})
         self.env = SharedControlEnv(rendered_context=True, **scene, **render)
         self.env.method = make_method(config.method, controller_speed_limits(self.env.base), policy=policy,
-                                      config=SharedControlConfig.preset(config.fusion))
+                                      config=fusion)
         self.speed_limits = controller_speed_limits(self.env.base)
         self.display = None
         if not config.headless:  # the window opens once the scene can be shown

@@ -14,7 +14,7 @@ from rtv3_maniskill.benchmarks.shared_merge import merge_runs
 from rtv3_maniskill.benchmarks.shared_report import summary_markdown
 from rtv3_maniskill.benchmarks.shared_results import results_store
 from rtv3_maniskill.benchmarks.shared_runner import run_benchmark
-from rtv3_maniskill.benchmarks.shared_statistics import oracle_gain_share, summarize
+from rtv3_maniskill.benchmarks.shared_statistics import oracle_gain_share, success_by_goal_check, summarize
 from rtv3_maniskill.policies.rtv3 import load_policy
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
@@ -258,6 +258,22 @@ def test_share_of_the_oracles_gain_is_computed_on_the_goals_all_three_ran():
     assert by_method[("noisy", "rtv3")]["oracle_gain_share"] == pytest.approx(0.5)
     assert by_method[("laggy", "rtv3")]["oracle_gain_share"] is None
     assert "| noisy | RT-V3 | 50 |" in summary_markdown(list(by_method.values()))
+
+
+def test_success_is_split_by_the_goals_arm_reach_check():
+    # Goals 0-3 pass the arm-reach check, 4-5 have no IK at the pre-grasp, goal 6 has no check (left out).
+    checks = {(1, g): "feasible" for g in range(4)} | {(1, 4): "no_ik_pregrasp", (1, 5): "no_ik_pregrasp"}
+    rows = [dict(scene_seed=1, grasp_index=g, user="noisy", method="direct", outcome="success" if ok else "timeout",
+                 success=int(ok), collision=0, steps=50)
+            for g, ok in enumerate([True, True, True, False, True, False, True])]
+    by_check = success_by_goal_check(rows, checks)
+    assert by_check == {("noisy", "direct"): {"feasible": (4, 75.0), "no_ik_pregrasp": (2, 50.0)}}
+    text = summary_markdown(summarize(rows), by_check=by_check)
+    assert "| User | Method | feasible | no_ik_pregrasp |" in text
+    assert "| noisy | Direct | 75.0 (4) | 50.0 (2) |" in text
+    # With one check only (the rule `reachable` runs feasible goals alone) there is nothing to split.
+    assert "arm-reach check (trials" not in summary_markdown(summarize(rows[:4]),
+                                                             by_check=success_by_goal_check(rows[:4], checks))
 
 
 def _rows(path):
