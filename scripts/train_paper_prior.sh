@@ -53,7 +53,7 @@ fine_tune() {  # NAME INIT STEPS DATASETS... -> OUT/NAME (cache, run)
   local roots=()
   for d in "$@"; do roots+=(--dataset.root "$d"); done
   [[ -f $OUT/$name/cache/summary.json ]] || $rtv3 compact-cache build "${roots[@]}" --output "$OUT/$name/cache" \
-      --policy.path "$init" --set optimizer_lr="$LR"
+      --policy.path "$init"
   $rtv3 compact-cache train --cache "$OUT/$name/cache" --output "$OUT/$name/run" --steps "$steps" \
       --batch-size "$BATCH" --save-freq "$SAVE_FREQ" --device "$DEVICE" --lr "$LR" --lr-decay 0.998 --min-lr 1e-5
   $rtv3 compact-cache finish "$OUT/$name/run/checkpoints/last"
