@@ -5,7 +5,6 @@ builds its options from the fields (:func:`rtv3_maniskill.cli.benchmark_shared.a
 defaults and the help live here only. Metadata keys besides ``help``:
 
 * ``flags``: the option's names (default ``--field-name``);
-* ``negate``: a flag that sets a bool field, True by default, to False;
 * ``choices``: the values the option takes;
 * ``known``: a function returning the names the field takes (a registry; imported only when the help is shown);
 * ``preset``: the option's default comes from ``--preset`` (``rtv3_maniskill.presets``);
@@ -31,9 +30,13 @@ from rtv3_maniskill.robot.execution import EXECUTIONS
 
 DEFAULT_USERS = ("noisy", "laggy", "mode_switching", "single_dof", "low_dof")
 """The simulated users a run drives with by default: every user but the ideal one."""
-OBS_MODES = ("state_dict", "pointcloud")
 PROTOCOL = "authors: ready-pose start, feasible goals"
-"""How trials are set up (docs/PAPER_DETAILS.md, "Authors' benchmark protocol"), recorded with the results."""
+"""How trials are set up (docs/PAPER_DETAILS.md, "Authors' benchmark protocol"), recorded with the results:
+every trial starts at the Panda ready pose, ends at the first robot contact (a failure), and the prior sees
+the scene cloud rendered once per scene from the depth camera, as ``rtv3 generate`` stores it."""
+_FIXED_SETTINGS = dict(stop_on_contact=True, obs_mode="state_dict", rendered_context=True)
+"""Parts of :data:`PROTOCOL` that runs made before they were fixed recorded as settings; ``config.json``
+keeps them, so those runs still resume."""
 _SPEED_LIMIT_FIELDS = ("max_linear_speed", "max_angular_speed")
 """SharedControlConfig fields the benchmark takes from the env's controller, not from its settings."""
 
@@ -99,21 +102,9 @@ class BenchmarkConfig:
     seed: int = _option(9, help="scene seed block (9, the test block, is held out from training scenes of "
                                 "`rtv3 generate --seed 0..8`)")
     goals_per_scene: int | None = _option(
-        None, flags=("--goals-per-scene", "--max-grasps-per-scene"),
+        None,
         help="feasible goals per scene (a seeded random subset; default: every feasible grasp; the paper ran 10-20)")
     max_steps: int = _option(150, help="control steps per trial (20 Hz)")
-    stop_on_contact: bool = _option(
-        True, negate="--continue-after-contact",
-        help="let a trial go on after a robot contact (still counted as a collision; 'reached' says whether the "
-             "pre-grasp was reached) instead of ending it there as a failure (the paper's protocol, the default)")
-    obs_mode: str = _option("state_dict", choices=OBS_MODES,
-                            help="state_dict: the scene cloud given once per scene; pointcloud: depth camera "
-                                 "rendered every step")
-    rendered_context: bool = _option(
-        True, negate="--mesh-context",
-        help="state_dict mode: use the mesh-sampled scene cloud, which the shipped prior was not trained on, "
-             "instead of rendering it once per scene from the depth camera (the default, as `rtv3 generate` "
-             "stores it)")
     scene_type: str = _option("mixed", option=False, help="GraspClutter-v1's layout (--preset, --scene-type)")
     object_source: str = _option("procedural", option=False,
                                  help="GraspClutter-v1's object_source, e.g. random_urdfs (--preset, --objects)")
@@ -167,8 +158,7 @@ class BenchmarkConfig:
                             ("goals_per_scene", self.goals_per_scene)):
             if value is not None and value < 1:
                 raise BenchmarkError(f"{name} must be >= 1, got {value}")
-        for name, value, known in (("obs_mode", self.obs_mode, OBS_MODES), ("goal rule", self.goals, GOAL_RULES),
-                                   ("execution", self.execution, EXECUTIONS)):
+        for name, value, known in (("goal rule", self.goals, GOAL_RULES), ("execution", self.execution, EXECUTIONS)):
             if value not in known:
                 raise BenchmarkError(f"unknown {name} {value!r}; known: {', '.join(known)}")
         if self.safety_filter is not None and self.safety_filter not in _known_safety_filters():
@@ -226,8 +216,7 @@ class BenchmarkConfig:
             for key in _SPEED_LIMIT_FIELDS:
                 shared_control.pop(key)
         return dict(
-            seed=self.seed, max_steps=self.max_steps, stop_on_contact=self.stop_on_contact, obs_mode=self.obs_mode,
-            rendered_context=self.rendered_context, scene_type=self.scene_type,
+            seed=self.seed, max_steps=self.max_steps, **_FIXED_SETTINGS, scene_type=self.scene_type,
             goals_per_scene=self.goals_per_scene, protocol=PROTOCOL, safety_filter=self.safety_filter,
             policy_path=str(policy_path.resolve()) if policy_path is not None else None,
             policy_weights_sha256=weights_digest(policy_path) if policy_path is not None else None,
@@ -237,7 +226,7 @@ class BenchmarkConfig:
 
     def env_kwargs(self) -> dict[str, Any]:
         """``GraspClutter-v1`` keyword arguments of these settings (scenes, objects, execution, contacts)."""
-        return dict(obs_mode=self.obs_mode, scene_type=self.scene_type, object_source=self.object_source,
+        return dict(obs_mode="state_dict", scene_type=self.scene_type, object_source=self.object_source,
                     execution=self.execution, self_contacts=self.self_contacts)
 
 

@@ -83,7 +83,7 @@ class SceneRunner:
         env_kwargs = config.env_kwargs()
         if policy is not None:
             env_kwargs.update(num_points=int(policy.config.num_points), max_grasps=int(policy.config.max_grasps))
-        self.env = SharedControlEnv(rendered_context=config.rendered_context, safety_filter=config.safety_filter,
+        self.env = SharedControlEnv(rendered_context=True, safety_filter=config.safety_filter,
                                     **env_kwargs)
         self.suffix = f"+{config.safety_filter}" if config.safety_filter else ""
         limits = controller_speed_limits(self.env.base)
@@ -140,7 +140,7 @@ class SceneRunner:
                         prepare(method, trial)
                     result = run_episode(env, method, make_user(user_name, u_seed), max_steps=config.max_steps,
                                          seed=scene_seed, options=trial_options(g),
-                                         stop_on_contact=config.stop_on_contact)
+                                         stop_on_contact=True)
                     counts = result.mode_counts
                     row = dict(
                         scene_seed=scene_seed, grasp_index=g, user=user_name, method=method_name + self.suffix,

@@ -61,13 +61,10 @@ def _option_fields() -> list[dataclasses.Field]:
 
 def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     """One option per :class:`BenchmarkConfig` field that has one, with the field's help and default
-    (``--preset`` fields default to the preset's value; a ``negate`` flag turns a bool field off)."""
+    (``--preset`` fields default to the preset's value)."""
     hints = typing.get_type_hints(BenchmarkConfig)
     for spec in _option_fields():
         meta = spec.metadata
-        if "negate" in meta:
-            parser.add_argument(meta["negate"], action="store_true", help=meta["help"])
-            continue
         text = meta["help"]
         if "known" in meta:
             text += ": %(known)s"
@@ -88,12 +85,9 @@ def config_settings(args: argparse.Namespace) -> dict[str, Any]:
     a preset field not given takes the preset's value)."""
     settings: dict[str, Any] = {}
     for spec in _option_fields():
-        meta = spec.metadata
-        if "negate" in meta:
-            settings[spec.name] = not getattr(args, meta["negate"].lstrip("-").replace("-", "_"))
-        elif (value := getattr(args, spec.name)) is not None:
+        if (value := getattr(args, spec.name)) is not None:
             settings[spec.name] = value
-        elif meta.get("preset", False):
+        elif spec.metadata.get("preset", False):
             settings[spec.name] = getattr(get_preset(args.preset), spec.name)
     return settings
 
@@ -101,11 +95,6 @@ def config_settings(args: argparse.Namespace) -> dict[str, Any]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser)
     add_scene_arguments(parser)
-    parser.add_argument("--ood-alpha", type=float, default=None,
-                        help="RT-V3 OOD gate chi-square quantile (tuned 0.99, paper 0.85); "
-                             "higher trusts the prior more")
-    parser.add_argument("--ood-covariance", choices=["class", "predictive"], default=None,
-                        help="RT-V3 OOD gate distance under the class covariance (paper) or class + user noise (tuned)")
     parser.add_argument("--prior-covariance-scale", type=float, default=None,
                         help="factor on the prior's step-0 covariances before the gate and the fusion (tuned 100, "
                              "paper 1); larger gives the user's command more weight against an overconfident prior")
@@ -139,7 +128,7 @@ def shared_control_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """The ``SharedControlConfig`` fields the command line sets (``off`` -> None), the others left to the preset."""
     return {
         key: (None if value == "off" else value)
-        for key in ("ood_alpha", "ood_covariance", "prior_covariance_scale", "goal_belief_margin")
+        for key in ("prior_covariance_scale", "goal_belief_margin")
         if (value := getattr(args, key, None)) is not None
     }
 

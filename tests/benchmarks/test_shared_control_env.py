@@ -518,17 +518,3 @@ def test_trials_start_at_the_ready_pose_and_infeasible_goals_are_never_run(tmp_p
                          options=trial_options(min(run)))
     ready = PandaKinematics().forward_kinematics(READY_QPOS)
     np.testing.assert_allclose(result.trajectory[0], ready, atol=2e-3)
-
-
-def test_the_python_benchmark_and_the_cli_default_to_the_scene_cloud_the_prior_was_trained_on(tmp_path):
-    """``BenchmarkConfig`` and ``rtv3 benchmark-shared`` both render the scene cloud once per scene
-    (as ``rtv3 generate`` stores it); the mesh-sampled cloud is an explicit choice in both."""
-    import argparse
-
-    from rtv3_maniskill.cli.benchmark_shared import add_arguments
-
-    parser = argparse.ArgumentParser()
-    add_arguments(parser)
-    assert BenchmarkConfig(output=tmp_path).rendered_context is True
-    assert not parser.parse_args([]).mesh_context
-    assert parser.parse_args(["--mesh-context"]).mesh_context
