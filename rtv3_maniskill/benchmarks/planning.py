@@ -50,7 +50,13 @@ from tqdm import tqdm
 
 from rtv3_maniskill import ENV_ID, features
 from rtv3_maniskill.benchmarks.outcomes import describe_contact, trial_outcome
-from rtv3_maniskill.benchmarks.planning_records import NO_START_POSE, scene_index, summarize, trials_store
+from rtv3_maniskill.benchmarks.planning_records import (
+    NO_START_POSE,
+    paired_with_baseline,
+    scene_index,
+    summarize,
+    trials_store,
+)
 from rtv3_maniskill.benchmarks.planning_success import (
     PLANNING_SUCCESS_THRESHOLD,
     is_planning_success,
@@ -284,11 +290,15 @@ class PlanningBenchmark:
             self._env = None
 
 
-def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress: bool = True) -> dict[str, Any]:
+def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress: bool = True,
+                           baseline: Path | None = None) -> dict[str, Any]:
     """Run (or resume) the benchmark; returns the summary (also written to ``planning_summary.json``).
 
-    ``policy`` overrides loading ``config.policy_path``.
+    ``policy`` overrides loading ``config.policy_path``; ``baseline``: a finished run's folder to pair this
+    run with, trial for trial (the summary's ``paired_with``, :func:`planning_records.paired_with_baseline`).
     """
+    if baseline is not None and not (Path(baseline) / "planning_trials.csv").is_file():
+        paired_with_baseline([], baseline)  # the clear error, before any trial runs
     torch.set_num_threads(1)
     if policy is None and config.planner == "neoss":
         policy = StraightToPregrasp()
@@ -340,5 +350,7 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
                       f"or its twin < {config.threshold}"),
         paper_table1_full_rtv3=PAPER_TABLE1_FULL,
     )
+    if baseline is not None:
+        summary["paired_with"] = paired_with_baseline((trials.get(k) for k in keys), baseline)
     (output / "planning_summary.json").write_text(json.dumps(summary, indent=2))
     return summary

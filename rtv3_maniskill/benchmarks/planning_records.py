@@ -1,5 +1,6 @@
 """The planning benchmark's records: ``planning_trials.csv`` (one row per trial), ``planning_scenes.csv``
-(the valid grasps of each scene built) and the SR / CR / TOR summary of trial rows.
+(the valid grasps of each scene built), the SR / CR / TOR summary of trial rows, and the paired
+comparison of two runs on the trials both ran (two checkpoints on one validation block).
 
 A resumed run reads both files back (torn or foreign rows are skipped) and must use the same
 settings (``planning_config.json``).
@@ -14,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from rtv3_maniskill.benchmarks.outcomes import CONTACT_KINDS, OUTCOMES
+from rtv3_maniskill.benchmarks.shared_statistics import mcnemar_exact
 from rtv3_maniskill.records import RecordStore
 
 NO_START_POSE = "no_start_pose"
@@ -65,6 +67,34 @@ def summarize(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
         collisions_with={k: sum(1 for r in rows if r["outcome"] == "collision" and k in r.get("contact", "").split("+"))
                          for k in CONTACT_KINDS},
     )
+
+
+def paired_with_baseline(rows: Iterable[dict[str, Any]], baseline: Path) -> dict[str, Any]:
+    """This run's trials against a finished run in folder ``baseline`` (its ``planning_trials.csv``) on the
+    (scene, grasp) trials both ran with a start pose: ``paired_trials``, ``SR`` and ``baseline_SR`` on them,
+    ``wins`` (this run succeeded, the baseline did not), ``losses`` (the reverse) and the exact McNemar p.
+    The starts and scenes are seeded, so two checkpoints on one seed block meet the same trials.
+
+    Raises:
+        FileNotFoundError: ``baseline`` holds no ``planning_trials.csv``.
+        ValueError: the runs share no trial (another seed block or scene set).
+    """
+    path = Path(baseline) / "planning_trials.csv"
+    if not path.is_file():
+        raise FileNotFoundError(f"--compare-with {baseline}: no planning_trials.csv there (a finished "
+                                "`rtv3 evaluate planning` output folder is expected)")
+    ran = {(int(r["scene_seed"]), int(r["grasp_index"])): r["outcome"] == "success"
+           for r in rows if r["outcome"] != NO_START_POSE}
+    other = {(int(r["scene_seed"]), int(r["grasp_index"])): r["outcome"] == "success"
+             for r in read_trials(path) if r["outcome"] != NO_START_POSE}
+    shared = sorted(ran.keys() & other.keys())
+    if not shared:
+        raise ValueError(f"--compare-with {baseline}: no trial in common with this run (another --seed or scenes?)")
+    wins = sum(ran[k] and not other[k] for k in shared)
+    losses = sum(other[k] and not ran[k] for k in shared)
+    return dict(baseline=str(baseline), paired_trials=len(shared), SR=sum(ran[k] for k in shared) / len(shared),
+                baseline_SR=sum(other[k] for k in shared) / len(shared), wins=wins, losses=losses,
+                mcnemar_p=mcnemar_exact(wins, losses))
 
 
 def scene_index(output: Path, settings: dict[str, Any]) -> RecordStore:

@@ -76,6 +76,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(plan)
     plan.add_argument("--max-steps", type=int, default=150, help="steps before a timeout (150 = 7.5 s)")
     plan.add_argument("--output", type=Path, default=Path("outputs/planning"), help="results folder")
+    plan.add_argument("--compare-with", type=Path, default=None, metavar="DIR",
+                      help="a finished run's output folder (e.g. another checkpoint on the same --seed and --scenes): "
+                           "wins / losses against it on the trials both ran, with an exact McNemar test")
     plan.set_defaults(_evaluate=_run_planning)
 
     abl = sub.add_parser(
@@ -123,7 +126,7 @@ def _run_planning(args: argparse.Namespace) -> int:
             context=args.context, point_cloud=args.point_cloud, **scene_settings(args), max_steps=args.max_steps,
             planner=args.planner,
         )
-        summary = run_planning_benchmark(config)
+        summary = run_planning_benchmark(config, baseline=args.compare_with)
     except (FileNotFoundError, ValueError) as err:
         raise SystemExit(f"error: {err}") from None
     rates = "  ".join(
@@ -132,6 +135,11 @@ def _run_planning(args: argparse.Namespace) -> int:
     print(f"{summary['trials']} trials ({summary['no_start_pose']} without a start pose left out): {rates}")
     shown = ("success", "collision", "timeout", "mean_steps_success", "collisions_with")
     print(json.dumps({k: summary[k] for k in shown}))
+    if "paired_with" in summary:
+        paired = summary["paired_with"]
+        print(f"against {paired['baseline']} on the {paired['paired_trials']} trials both ran: SR "
+              f"{100 * paired['SR']:.1f} vs {100 * paired['baseline_SR']:.1f} %, wins / losses {paired['wins']} / "
+              f"{paired['losses']}, exact McNemar p {paired['mcnemar_p']:.3g}")
     print(f"wrote {config.output / 'planning_trials.csv'} and {config.output / 'planning_summary.json'}")
     return 0
 

@@ -252,10 +252,14 @@ def test_planning_benchmark_runs_writes_and_resumes(untrained_policy, tmp_path, 
     summary = json.loads((out / "planning_summary.json").read_text())
     assert summary["trials"] == 1
     assert summary["SR"] + summary["CR"] + summary["TOR"] == pytest.approx(1.0)
-    # Rerun: the finished (scene, grasp) is skipped, no row is added, the summary is the same.
-    assert main(args) == 0
+    # Rerun: the finished (scene, grasp) is skipped, no row is added, the summary is the same; paired
+    # with itself, the run ties on its one trial.
+    assert main([*args, "--compare-with", str(out)]) == 0
+    assert "on the 1 trials both ran" in capsys.readouterr().out
     assert _trial_rows(out) == rows
-    assert json.loads((out / "planning_summary.json").read_text())["trials"] == 1
+    summary = json.loads((out / "planning_summary.json").read_text())
+    assert summary["trials"] == 1
+    assert (summary["paired_with"]["paired_trials"], summary["paired_with"]["wins"]) == (1, 0)
     with pytest.raises(SystemExit, match="other settings"):
         main([*args[:-2], "--context", "all", "--output", str(out)])
 
@@ -322,6 +326,32 @@ def test_planning_trials_resume_after_a_torn_row_and_summary_leaves_out_missing_
     assert summary["mean_steps_success"] == 40.0
     with pytest.raises(ValueError, match="other settings"):
         planning_records.trials_store(tmp_path, {"seed": 10})
+
+
+def test_two_runs_are_paired_on_the_trials_both_ran(tmp_path):
+    base = dict(start_distance="0.5", final_distance="0.1", min_distance="0.1", reached_grasp=0, context_grasps=1,
+                start_attempts=1, wall_time_s="1.0", steps=40)
+
+    def run(folder, outcomes):
+        trials = planning_records.trials_store(tmp_path / folder, {"seed": 8})
+        for (scene, grasp), outcome in outcomes.items():
+            trials.append(dict(base, scene_seed=scene, grasp_index=grasp, outcome=outcome))
+        trials.close()
+        return planning_records.read_trials(tmp_path / folder / "planning_trials.csv")
+
+    # Trials (1, g): the new run wins 0-3 and loses 4; 5 and 6 agree; (2, 0) has no start pose in the
+    # baseline and (3, 0) only the new run ran: neither counts.
+    shipped = {(1, g): "success" if g >= 4 else "collision" for g in range(7)} | {(2, 0): "no_start_pose"}
+    new = {(1, g): "success" if g != 4 else "timeout" for g in range(7)} | {(2, 0): "success", (3, 0): "success"}
+    run("shipped", shipped)
+    paired = planning_records.paired_with_baseline(run("new", new), tmp_path / "shipped")
+    assert (paired["paired_trials"], paired["wins"], paired["losses"]) == (7, 4, 1)
+    assert (paired["SR"], paired["baseline_SR"]) == pytest.approx((6 / 7, 3 / 7))
+    assert paired["mcnemar_p"] == pytest.approx(2 * (1 + 5) / 32)  # two-sided exact: P(X <= 1 | n = 5, 1/2) x 2
+    with pytest.raises(FileNotFoundError, match="no planning_trials.csv"):
+        planning_records.paired_with_baseline([], tmp_path / "missing")
+    with pytest.raises(ValueError, match="no trial in common"):
+        planning_records.paired_with_baseline(run("other_block", {(9, 0): "success"}), tmp_path / "shipped")
 
 
 def test_step0_calibration_of_a_known_gaussian():
