@@ -52,6 +52,7 @@ from rtv3_maniskill import ENV_ID, features
 from rtv3_maniskill.benchmarks.outcomes import describe_contact, trial_outcome
 from rtv3_maniskill.benchmarks.planning_records import (
     NO_START_POSE,
+    check_baseline,
     paired_with_baseline,
     scene_index,
     summarize,
@@ -297,8 +298,8 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
     ``policy`` overrides loading ``config.policy_path``; ``baseline``: a finished run's folder to pair this
     run with, trial for trial (the summary's ``paired_with``, :func:`planning_records.paired_with_baseline`).
     """
-    if baseline is not None and not (Path(baseline) / "planning_trials.csv").is_file():
-        paired_with_baseline([], baseline)  # the clear error, before any trial runs
+    if baseline is not None:
+        check_baseline(baseline, config.fingerprint())  # a missing or mismatched one fails before any trial
     torch.set_num_threads(1)
     if policy is None and config.planner == "neoss":
         policy = StraightToPregrasp()
@@ -351,6 +352,6 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
         paper_table1_full_rtv3=PAPER_TABLE1_FULL,
     )
     if baseline is not None:
-        summary["paired_with"] = paired_with_baseline((trials.get(k) for k in keys), baseline)
+        summary["paired_with"] = paired_with_baseline((trials.get(k) for k in keys), baseline, config.fingerprint())
     (output / "planning_summary.json").write_text(json.dumps(summary, indent=2))
     return summary

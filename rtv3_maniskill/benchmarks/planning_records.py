@@ -8,6 +8,7 @@ settings (``planning_config.json``).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -69,27 +70,55 @@ def summarize(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
     )
 
 
-def paired_with_baseline(rows: Iterable[dict[str, Any]], baseline: Path) -> dict[str, Any]:
-    """This run's trials against a finished run in folder ``baseline`` (its ``planning_trials.csv``) on the
-    (scene, grasp) trials both ran with a start pose: ``paired_trials``, ``SR`` and ``baseline_SR`` on them,
-    ``wins`` (this run succeeded, the baseline did not), ``losses`` (the reverse) and the exact McNemar p.
-    The starts and scenes are seeded, so two checkpoints on one seed block meet the same trials.
+_POLICY_SETTINGS = ("policy_path", "planner")
+"""Settings two paired runs may differ in: what drives the arm. Every other setting decides the trials."""
+
+
+def _setting(settings: dict[str, Any], key: str) -> str:
+    """A recorded setting for a message; a key a run leaves out holds its default."""
+    return repr(settings[key]) if key in settings else "the default"
+
+
+def check_baseline(baseline: Path, settings: dict[str, Any]) -> None:
+    """Refuse a run to pair with (``rtv3 evaluate planning --compare-with``) that is not a finished planning
+    run, or whose trials other settings decided: only :data:`_POLICY_SETTINGS` may differ from ``settings``
+    (this run's ``planning_config.json``).
 
     Raises:
-        FileNotFoundError: ``baseline`` holds no ``planning_trials.csv``.
-        ValueError: the runs share no trial (another seed block or scene set).
+        FileNotFoundError: ``baseline`` holds no ``planning_trials.csv`` or ``planning_config.json``.
+        ValueError: the baseline was run with other scene or trial settings (the message names them).
     """
-    path = Path(baseline) / "planning_trials.csv"
-    if not path.is_file():
-        raise FileNotFoundError(f"--compare-with {baseline}: no planning_trials.csv there (a finished "
-                                "`rtv3 evaluate planning` output folder is expected)")
+    baseline = Path(baseline)
+    if not (baseline / "planning_trials.csv").is_file() or not (baseline / "planning_config.json").is_file():
+        raise FileNotFoundError(f"--compare-with {baseline}: no planning_trials.csv and planning_config.json there "
+                                "(a finished `rtv3 evaluate planning` output folder is expected)")
+    other = json.loads((baseline / "planning_config.json").read_text())
+    keys = (settings.keys() | other.keys()) - set(_POLICY_SETTINGS)
+    differ = sorted(k for k in keys if settings.get(k) != other.get(k))
+    if differ:
+        raise ValueError(f"--compare-with {baseline}: its trials were run with other settings ("
+                         + ", ".join(f"{k}: {_setting(other, k)} there, {_setting(settings, k)} here" for k in differ)
+                         + "); pair runs that differ only in what drives the arm")
+
+
+def paired_with_baseline(rows: Iterable[dict[str, Any]], baseline: Path, settings: dict[str, Any]) -> dict[str, Any]:
+    """This run's trials (``rows``, run with ``settings``) against a finished run in folder ``baseline`` on the
+    (scene, grasp) trials both ran with a start pose: ``paired_trials``, ``SR`` and ``baseline_SR`` on them,
+    ``wins`` (this run succeeded, the baseline did not), ``losses`` (the reverse) and the exact McNemar p.
+    Scenes and starts are seeded, so two checkpoints (or a checkpoint and the NeoSS planner) run with the
+    same other settings meet the same trials.
+
+    Raises:
+        FileNotFoundError, ValueError: as :func:`check_baseline`; ValueError also when no trial is shared.
+    """
+    check_baseline(baseline, settings)
     ran = {(int(r["scene_seed"]), int(r["grasp_index"])): r["outcome"] == "success"
            for r in rows if r["outcome"] != NO_START_POSE}
     other = {(int(r["scene_seed"]), int(r["grasp_index"])): r["outcome"] == "success"
-             for r in read_trials(path) if r["outcome"] != NO_START_POSE}
+             for r in read_trials(Path(baseline) / "planning_trials.csv") if r["outcome"] != NO_START_POSE}
     shared = sorted(ran.keys() & other.keys())
     if not shared:
-        raise ValueError(f"--compare-with {baseline}: no trial in common with this run (another --seed or scenes?)")
+        raise ValueError(f"--compare-with {baseline}: no trial in common with this run (other scenes?)")
     wins = sum(ran[k] and not other[k] for k in shared)
     losses = sum(other[k] and not ran[k] for k in shared)
     return dict(baseline=str(baseline), paired_trials=len(shared), SR=sum(ran[k] for k in shared) / len(shared),

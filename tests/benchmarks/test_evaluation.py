@@ -331,9 +331,10 @@ def test_planning_trials_resume_after_a_torn_row_and_summary_leaves_out_missing_
 def test_two_runs_are_paired_on_the_trials_both_ran(tmp_path):
     base = dict(start_distance="0.5", final_distance="0.1", min_distance="0.1", reached_grasp=0, context_grasps=1,
                 start_attempts=1, wall_time_s="1.0", steps=40)
+    settings = dict(seed=8, scene_type="packed_ycb", policy_path="/ckpt/shipped", planner="policy")
 
-    def run(folder, outcomes):
-        trials = planning_records.trials_store(tmp_path / folder, {"seed": 8})
+    def run(folder, outcomes, **changed):
+        trials = planning_records.trials_store(tmp_path / folder, dict(settings, **changed))
         for (scene, grasp), outcome in outcomes.items():
             trials.append(dict(base, scene_seed=scene, grasp_index=grasp, outcome=outcome))
         trials.close()
@@ -344,14 +345,18 @@ def test_two_runs_are_paired_on_the_trials_both_ran(tmp_path):
     shipped = {(1, g): "success" if g >= 4 else "collision" for g in range(7)} | {(2, 0): "no_start_pose"}
     new = {(1, g): "success" if g != 4 else "timeout" for g in range(7)} | {(2, 0): "success", (3, 0): "success"}
     run("shipped", shipped)
-    paired = planning_records.paired_with_baseline(run("new", new), tmp_path / "shipped")
+    mine = dict(settings, policy_path="/ckpt/new")  # another checkpoint: the one setting that may differ
+    paired = planning_records.paired_with_baseline(run("new", new, policy_path="/ckpt/new"), tmp_path / "shipped", mine)
     assert (paired["paired_trials"], paired["wins"], paired["losses"]) == (7, 4, 1)
     assert (paired["SR"], paired["baseline_SR"]) == pytest.approx((6 / 7, 3 / 7))
     assert paired["mcnemar_p"] == pytest.approx(2 * (1 + 5) / 32)  # two-sided exact: P(X <= 1 | n = 5, 1/2) x 2
     with pytest.raises(FileNotFoundError, match="no planning_trials.csv"):
-        planning_records.paired_with_baseline([], tmp_path / "missing")
+        planning_records.paired_with_baseline([], tmp_path / "missing", mine)
+    # The same seeds on another preset are other scenes: refused, naming the setting.
+    with pytest.raises(ValueError, match="scene_type: 'packed_ycb' there, 'mixed' here"):
+        planning_records.check_baseline(tmp_path / "shipped", dict(mine, scene_type="mixed"))
     with pytest.raises(ValueError, match="no trial in common"):
-        planning_records.paired_with_baseline(run("other_block", {(9, 0): "success"}), tmp_path / "shipped")
+        planning_records.paired_with_baseline(run("other_scenes", {(9, 0): "success"}), tmp_path / "shipped", mine)
 
 
 def test_step0_calibration_of_a_known_gaussian():
