@@ -114,7 +114,7 @@ def test_each_preset_runs_rtv3_with_its_own_fusion_and_fusion_overrides_it():
 
 
 @pytest.mark.parametrize("command", ["demo", "teleop", "dagger"])
-def test_commands_running_rtv3_take_the_presets_fusion_and_fusion_overrides_it(command, tmp_path, capsys):
+def test_commands_running_rtv3_take_the_presets_fusion_and_fusion_overrides_it(command, tmp_path):
     from rtv3_maniskill.cli import main
     from rtv3_maniskill.cli.dagger import add_arguments as dagger_arguments
     from rtv3_maniskill.cli.demo import add_arguments as demo_arguments

@@ -298,8 +298,9 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
     ``policy`` overrides loading ``config.policy_path``; ``baseline``: a finished run's folder to pair this
     run with, trial for trial (the summary's ``paired_with``, :func:`planning_records.paired_with_baseline`).
     """
+    settings = config.fingerprint()
     if baseline is not None:
-        check_baseline(baseline, config.fingerprint())  # a missing or mismatched one fails before any trial
+        check_baseline(baseline, settings)  # a missing or mismatched one fails before any trial
     torch.set_num_threads(1)
     if policy is None and config.planner == "neoss":
         policy = StraightToPregrasp()
@@ -309,8 +310,8 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
         policy = load_policy(config.policy_path)
     output = config.output
     output.mkdir(parents=True, exist_ok=True)
-    trials = trials_store(output, config.fingerprint())
-    scenes = scene_index(output, config.fingerprint())
+    trials = trials_store(output, settings)
+    scenes = scene_index(output, settings)
     bench = PlanningBenchmark(config, policy)
     keys: list[tuple[int, int]] = []
     per_scene = config.max_grasps_per_scene or MAX_GRASPS_GUESS
@@ -346,12 +347,12 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
         scenes=config.scenes,
         scene_seed_range=[config.seed * SCENE_SEED_STRIDE, config.seed * SCENE_SEED_STRIDE + config.scenes - 1],
         max_grasps_per_scene=config.max_grasps_per_scene,
-        settings=config.fingerprint(),
+        settings=settings,
         success_rule=("pose distance (rot weight 0.3/pi) to a context grasp's pre-grasp "
                       f"or its twin < {config.threshold}"),
         paper_table1_full_rtv3=PAPER_TABLE1_FULL,
     )
     if baseline is not None:
-        summary["paired_with"] = paired_with_baseline((trials.get(k) for k in keys), baseline, config.fingerprint())
+        summary["paired_with"] = paired_with_baseline((trials.get(k) for k in keys), baseline)
     (output / "planning_summary.json").write_text(json.dumps(summary, indent=2))
     return summary

@@ -101,21 +101,23 @@ def check_baseline(baseline: Path, settings: dict[str, Any]) -> None:
                          + "); pair runs that differ only in what drives the arm")
 
 
-def paired_with_baseline(rows: Iterable[dict[str, Any]], baseline: Path, settings: dict[str, Any]) -> dict[str, Any]:
-    """This run's trials (``rows``, run with ``settings``) against a finished run in folder ``baseline`` on the
-    (scene, grasp) trials both ran with a start pose: ``paired_trials``, ``SR`` and ``baseline_SR`` on them,
-    ``wins`` (this run succeeded, the baseline did not), ``losses`` (the reverse) and the exact McNemar p.
-    Scenes and starts are seeded, so two checkpoints (or a checkpoint and the NeoSS planner) run with the
-    same other settings meet the same trials.
+def _successes(rows: Iterable[dict[str, Any]]) -> dict[tuple[int, int], bool]:
+    """``{(scene_seed, grasp_index): succeeded}`` of the trials that had a start pose."""
+    return {(int(r["scene_seed"]), int(r["grasp_index"])): r["outcome"] == "success"
+            for r in rows if r["outcome"] != NO_START_POSE}
+
+
+def paired_with_baseline(rows: Iterable[dict[str, Any]], baseline: Path) -> dict[str, Any]:
+    """This run's trials (``rows``) against the finished run in folder ``baseline`` (accepted by
+    :func:`check_baseline`) on the (scene, grasp) trials both ran with a start pose: ``paired_trials``,
+    ``SR`` and ``baseline_SR`` on them, ``wins`` (this run succeeded, the baseline did not), ``losses``
+    (the reverse) and the exact McNemar p. Scenes and starts are seeded, so two checkpoints (or a
+    checkpoint and the NeoSS planner) run with the same other settings meet the same trials.
 
     Raises:
-        FileNotFoundError, ValueError: as :func:`check_baseline`; ValueError also when no trial is shared.
+        ValueError: the runs share no trial.
     """
-    check_baseline(baseline, settings)
-    ran = {(int(r["scene_seed"]), int(r["grasp_index"])): r["outcome"] == "success"
-           for r in rows if r["outcome"] != NO_START_POSE}
-    other = {(int(r["scene_seed"]), int(r["grasp_index"])): r["outcome"] == "success"
-             for r in read_trials(Path(baseline) / "planning_trials.csv") if r["outcome"] != NO_START_POSE}
+    ran, other = _successes(rows), _successes(read_trials(Path(baseline) / "planning_trials.csv"))
     shared = sorted(ran.keys() & other.keys())
     if not shared:
         raise ValueError(f"--compare-with {baseline}: no trial in common with this run (other scenes?)")

@@ -53,7 +53,7 @@ def add_fusion_argument(parser: argparse.ArgumentParser) -> None:
 def fusion_name(args: argparse.Namespace) -> str:
     """RT-V3's fusion preset of the parsed options: ``--fusion``, else the scene preset's. The name is
     checked where the fusion is built (``SharedControlConfig.preset``: a clear error naming the known ones)."""
-    return getattr(args, "fusion", None) or get_preset(args.preset).fusion
+    return args.fusion or get_preset(args.preset).fusion
 
 
 def add_executor_arguments(parser: argparse.ArgumentParser) -> None:

@@ -346,17 +346,18 @@ def test_two_runs_are_paired_on_the_trials_both_ran(tmp_path):
     new = {(1, g): "success" if g != 4 else "timeout" for g in range(7)} | {(2, 0): "success", (3, 0): "success"}
     run("shipped", shipped)
     mine = dict(settings, policy_path="/ckpt/new")  # another checkpoint: the one setting that may differ
-    paired = planning_records.paired_with_baseline(run("new", new, policy_path="/ckpt/new"), tmp_path / "shipped", mine)
+    planning_records.check_baseline(tmp_path / "shipped", mine)
+    paired = planning_records.paired_with_baseline(run("new", new, policy_path="/ckpt/new"), tmp_path / "shipped")
     assert (paired["paired_trials"], paired["wins"], paired["losses"]) == (7, 4, 1)
     assert (paired["SR"], paired["baseline_SR"]) == pytest.approx((6 / 7, 3 / 7))
     assert paired["mcnemar_p"] == pytest.approx(2 * (1 + 5) / 32)  # two-sided exact: P(X <= 1 | n = 5, 1/2) x 2
     with pytest.raises(FileNotFoundError, match="no planning_trials.csv"):
-        planning_records.paired_with_baseline([], tmp_path / "missing", mine)
+        planning_records.check_baseline(tmp_path / "missing", mine)
     # The same seeds on another preset are other scenes: refused, naming the setting.
     with pytest.raises(ValueError, match="scene_type: 'packed_ycb' there, 'mixed' here"):
         planning_records.check_baseline(tmp_path / "shipped", dict(mine, scene_type="mixed"))
     with pytest.raises(ValueError, match="no trial in common"):
-        planning_records.paired_with_baseline(run("other_scenes", {(9, 0): "success"}), tmp_path / "shipped", mine)
+        planning_records.paired_with_baseline(run("other_scenes", {(9, 0): "success"}), tmp_path / "shipped")
 
 
 def test_step0_calibration_of_a_known_gaussian():
