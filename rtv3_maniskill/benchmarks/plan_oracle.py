@@ -77,9 +77,6 @@ class PlanOraclePrior:
     def _plan(self, q: np.ndarray) -> None:
         self._since_plan, self._index = 0, 0
         self.plans += 1
-        # Start inside the planner's joint bounds (they keep a margin from the limits the arm may touch).
-        margin = float(self.planner.config.joint_limit_margin) + 1e-4
-        q = np.clip(q, self.planner.kin.lower + margin, self.planner.kin.upper - margin)
         result = self.planner.plan_to_pose(q, self.goal, timeout=self.plan_timeout, seed=self.plans)
         if not result.success:
             self._path = None

@@ -10,6 +10,7 @@ import json
 from pathlib import Path
 
 from rtv3_maniskill.cli.scene_args import (
+    add_clearance_argument,
     add_executor_arguments,
     add_fusion_argument,
     add_push_argument,
@@ -39,6 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(parser)
     add_fusion_argument(parser)
     parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")
+    add_clearance_argument(parser)
     parser.add_argument("--workers", type=int, default=1, help="parallel CPU workers (processes or Ray actors)")
     add_executor_arguments(parser)
     add_push_argument(parser)
@@ -57,7 +59,7 @@ def dagger_config(args: argparse.Namespace) -> DaggerConfig:
         targets_per_scene=args.targets_per_scene or None, relabels_per_rollout=args.relabels_per_rollout,
         failure_relabels=args.failure_relabels, scene_type=args.scene_type, objects=args.objects,
         execution=args.execution, self_contacts=args.self_contacts, fusion=fusion_name(args),
-        plan_timeout=args.plan_timeout, workers=args.workers)
+        plan_timeout=args.plan_timeout, clearance=args.clearance, workers=args.workers)
 
 
 def run(args: argparse.Namespace) -> int:

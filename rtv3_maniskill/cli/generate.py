@@ -11,10 +11,12 @@ import json
 import time
 from collections import Counter
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from rtv3_maniskill.cli.scene_args import (
+    add_clearance_argument,
     add_executor_arguments,
     add_push_argument,
     add_scene_arguments,
@@ -22,6 +24,7 @@ from rtv3_maniskill.cli.scene_args import (
     push_if_asked,
     resolve_scene_arguments,
 )
+from rtv3_maniskill.robot.planner_config import DEFAULT_CLEARANCE, with_clearance
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -39,6 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--context", default="rendered", choices=["rendered", "mesh"],
                         help="scene point cloud from the depth camera (rendered once per scene) or mesh samples")
     parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")
+    add_clearance_argument(parser)
     parser.add_argument("--end-at", default="pregrasp", choices=["pregrasp", "grasp"],
                         help="demonstrations end at the pre-grasp (paper) "
                              "or go on along the 5 cm approach to the grasp")
@@ -61,6 +65,10 @@ def _validate(args: argparse.Namespace) -> None:
         make_object_set(args.objects)
     except (FileNotFoundError, ValueError) as err:
         raise SystemExit(f"error: --objects: {err}") from None
+    try:
+        with_clearance(args.clearance)
+    except ValueError as err:
+        raise SystemExit(f"error: --clearance: {err}") from None
 
 
 def _settings(args: argparse.Namespace) -> dict:
@@ -73,6 +81,8 @@ def _settings(args: argparse.Namespace) -> dict:
         max_grasps=args.max_grasps,
         context=args.context,
         end_at=args.end_at,
+        # Only when set, so that datasets made before the option existed still resume.
+        **({"clearance": args.clearance} if args.clearance != DEFAULT_CLEARANCE else {}),
     )
 
 
@@ -113,8 +123,8 @@ def _init_worker(args_dict: dict) -> _Worker:
         reconfiguration_freq=0,
         max_episode_steps=10_000,
     )
-    recorder = DemonstrationRecorder(env, PandaPlanner, plan_timeout=args_dict["plan_timeout"],
-                                     end_at=args_dict["end_at"])
+    recorder = DemonstrationRecorder(env, partial(PandaPlanner, config=with_clearance(args_dict["clearance"])),
+                                     plan_timeout=args_dict["plan_timeout"], end_at=args_dict["end_at"])
     # A one-process run writes each target into the staging area as it finishes (nothing to send back).
     staging = StagingArea(Path(args_dict["output"])) if args_dict["write_through"] else None
     return _Worker(recorder, args_dict, staging)

@@ -35,6 +35,7 @@ import json
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +54,7 @@ from rtv3_maniskill.features import context_mask
 from rtv3_maniskill.policies.rtv3.checkpoints import load_policy, resolve_checkpoint
 from rtv3_maniskill.records import scene_seeds, select_targets
 from rtv3_maniskill.robot.planner import PandaPlanner
+from rtv3_maniskill.robot.planner_config import with_clearance
 from rtv3_maniskill.robot.scene_geometry import READY_QPOS
 from rtv3_maniskill.robot.starts import random_start_configuration
 from rtv3_maniskill.scene_pool import run_scenes
@@ -112,7 +114,8 @@ class DaggerCollector:
         """RT-V3's fusion for the ``rtv3:USER`` drivers (``make_method`` sets its speed limits)."""
         expert_env = gym.make(ENV_ID, obs_mode="state_dict", control_mode="pd_joint_pos_vel",
                               reconfiguration_freq=0, max_episode_steps=10_000, **sizes)
-        self.recorder = DemonstrationRecorder(expert_env, PandaPlanner, plan_timeout=config.plan_timeout)
+        expert = partial(PandaPlanner, config=with_clearance(config.clearance))
+        self.recorder = DemonstrationRecorder(expert_env, expert, plan_timeout=config.plan_timeout)
         self.scene_seed: int | None = None
         self.staging: Any = None
         """The staging area a one-process run writes each rollout and relabel into (None: the run's process writes)."""

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rtv3_maniskill.robot.planner_config import DEFAULT_CLEARANCE, with_clearance
+
 DEFAULT_DRIVERS = ("prior", "rtv3:noisy", "direct:noisy", "rtv3:laggy", "rtv3:mode_switching",
                    "rtv3:single_dof", "direct:single_dof", "rtv3:low_dof")
 """The prior alone, and simulated users through RT-V3 (what the shared-control prior must read) and Direct."""
@@ -55,6 +57,8 @@ class DaggerConfig:
         min_step: earliest rollout step that is relabelled (step 0 is the start demonstrations cover).
         max_steps: rollout length limit (the benchmarks' 150).
         plan_timeout: seconds per OMPL query.
+        clearance: m the expert's free-space motion keeps from the objects
+            (:func:`~rtv3_maniskill.robot.planner_config.with_clearance`).
     """
 
     output: Path
@@ -68,6 +72,7 @@ class DaggerConfig:
     min_step: int = 2
     max_steps: int = 150
     plan_timeout: float = 3.0
+    clearance: float = DEFAULT_CLEARANCE
     scene_type: str = "mixed"
     objects: str = "procedural"
     execution: str = "capped"
@@ -93,6 +98,7 @@ class DaggerConfig:
             raise ValueError(f"targets_per_scene must be >= 1 or None, got {self.targets_per_scene}")
         if self.failure_relabels < 0:
             raise ValueError(f"failure_relabels must be >= 0, got {self.failure_relabels}")
+        with_clearance(self.clearance)  # a clear error for a bad distance
         if self.min_step < 1:
             raise ValueError(f"min_step must be >= 1, got {self.min_step}")
         # Lazy: it loads torch, and the CLI's parser imports this module. Checked here, before any
@@ -111,7 +117,8 @@ class DaggerConfig:
                     # Only when set, so that rounds made before these options existed still resume.
                     **({"execution": self.execution} if self.execution != "capped" else {}),
                     **({"self_contacts": self.self_contacts} if not self.self_contacts else {}),
-                    **({"fusion": self.fusion} if self.fusion != "tuned" else {}))
+                    **({"fusion": self.fusion} if self.fusion != "tuned" else {}),
+                    **({"clearance": self.clearance} if self.clearance != DEFAULT_CLEARANCE else {}))
 
 
 __all__ = ["DEFAULT_DRIVERS", "FAILURE_WINDOW_STEPS", "DaggerConfig", "parse_driver"]

@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -88,6 +88,10 @@ class PandaPlanner:
         self.scene = scene
         self.world = PandaCollisionWorld(self.kin, scene, config.margins)
         self._active_margins = config.margins
+        self._clear_world = None
+        """The scene under ``config.clearance`` (None when it adds nothing to ``config.margins``)."""
+        if config.clearance > config.margins.objects:
+            self._clear_world = PandaCollisionWorld(self.kin, scene, replace(config.margins, objects=config.clearance))
         self.velocity_limits = PANDA_VELOCITY_LIMITS * config.velocity_scale
         self.acceleration_limits = PANDA_ACCELERATION_LIMITS * config.acceleration_scale
 
@@ -107,6 +111,18 @@ class PandaPlanner:
         if np.all(q_start >= lower - 1e-3) and np.all(q_start <= upper + 1e-3):
             return np.clip(q_start, lower, upper)
         return q_start
+
+    def _into_state_space(self, q_start: np.ndarray) -> np.ndarray:
+        """A start ``(7,)`` within the joint limits moved into the planner's state space, which keeps
+        ``config.joint_limit_margin`` from every limit (OMPL refuses a start outside its bounds).
+
+        States the arm visits (a rollout's, a user's) may lie in that margin; the plan then starts at most
+        ``joint_limit_margin`` rad from them. Starts outside the limits are left to the collision check.
+        """
+        if not self.kin.within_limits(q_start, 1e-6):
+            return q_start
+        margin = self.config.joint_limit_margin + 1e-6
+        return np.clip(q_start, self.kin.lower + margin, self.kin.upper - margin)
 
     def forward_kinematics(self, q) -> np.ndarray:
         """``(4, 4)`` world pose of the TCP (``panda_hand_tcp``) at ``q (7,)``."""
@@ -219,7 +235,7 @@ class PandaPlanner:
         for a given ``seed`` (OMPL and numpy are seeded from it).
         """
         t0 = time.perf_counter()
-        q_start = self._clip_start(as_joint_vector(q_start, "q_start"))
+        q_start = self._into_state_space(self._clip_start(as_joint_vector(q_start, "q_start")))
         target = as_pose_matrix(target, "target")
         if timeout <= 0:
             raise ValueError(f"timeout must be > 0 s, got {timeout}")
@@ -243,9 +259,18 @@ class PandaPlanner:
 
         self.world.set_ignored(ignore)
         margin = self.config.joint_limit_margin
-        path, status = rrt_connect(q_start, goals, timeout - (time.perf_counter() - t0), seed,
-                                   self.kin.lower + margin, self.kin.upper - margin, self.world.check_fast,
-                                   self.config.collision_resolution, self.config.simplify_time)
+
+        def search(is_valid, time_left: float):
+            return rrt_connect(q_start, goals, time_left, seed, self.kin.lower + margin, self.kin.upper - margin,
+                               is_valid, self.config.collision_resolution, self.config.simplify_time)
+
+        path, status = None, "timeout"
+        if self._clear_world is not None:  # first a path that keeps the clearance on its way
+            self._clear_world.set_ignored(ignore)
+            ends = np.stack([self.kin.forward_kinematics(q_start)[:3, 3], target[:3, 3]])
+            path, status = search(self._clearance_check(ends), 0.5 * (timeout - (time.perf_counter() - t0)))
+        if path is None:
+            path, status = search(self.world.check_fast, timeout - (time.perf_counter() - t0))
         if path is None:
             if status == "timeout":
                 return fail("timeout", f"RRTConnect found no path within {timeout:.2f} s")
@@ -261,6 +286,21 @@ class PandaPlanner:
             planning_time=time.perf_counter() - t0,
             message=f"{len(path)} waypoints, {traj.duration:.2f} s",
         )
+
+    def _clearance_check(self, ends: np.ndarray):
+        """OMPL's validity check for the clearance search: ``config.margins`` within
+        ``config.clearance_release`` of the TCP positions ``ends (2, 3)`` (start, goal; m), ``config.clearance``
+        beyond (either world's ignore set is the one last set)."""
+        release2 = self.config.clearance_release ** 2
+        near_world, clear_world, kin = self.world, self._clear_world, self.kin
+
+        def is_valid(q: np.ndarray) -> bool:
+            tcp = kin.forward_kinematics(q)[:3, 3]
+            if float(np.min(np.sum((ends - tcp) ** 2, axis=1))) < release2:
+                return near_world.check_fast(q)
+            return clear_world.check_fast(q)
+
+        return is_valid
 
     def _time_parameterize(self, path: np.ndarray, ignore) -> JointTrajectory | None:
         """TOPP-RA on a cubic spline through the (densified) path, then a dense collision check.

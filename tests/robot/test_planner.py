@@ -12,7 +12,7 @@ from rtv3_maniskill.robot.collision_world import CollisionMargins, PandaCollisio
 from rtv3_maniskill.robot.panda_hand import panda_asset_dir
 from rtv3_maniskill.robot.panda_model import REST_QPOS, PandaKinematics
 from rtv3_maniskill.robot.planner import PandaPlanner
-from rtv3_maniskill.robot.planner_config import PlannerConfig
+from rtv3_maniskill.robot.planner_config import PlannerConfig, with_clearance
 from rtv3_maniskill.robot.scene_geometry import (
     READY_QPOS,
     ROBOT_BASE_POSITION,
@@ -205,6 +205,41 @@ def test_plan_around_wall_is_collision_free_and_within_limits(wall_planner, kine
     # Reproducible per seed.
     again = planner.plan_to_pose(q_start, goal, seed=3)
     assert np.array_equal(again.trajectory.q, traj.q)
+
+
+def test_clearance_keeps_the_way_clear_and_the_targets_reachable(wall_planner, kinematics):
+    """With 3 cm clearance every state of the path away from its ends clears the wall by 3 cm; near the
+    start and the goal the 1 cm margin alone applies, so a goal next to the wall stays reachable."""
+    config = with_clearance(0.03)
+    assert config.margins.objects == 0.01 and config.clearance == 0.03
+    planner = PandaPlanner(wall_planner.scene, config=config, kinematics=kinematics)
+    q_start = planner.solve_ik(tcp_pose([0.0, -0.15, 0.05]), REST_QPOS)
+    goal = tcp_pose([0.0, 0.14, 0.05])  # the hand 1-3 cm from the wall: inside the clearance
+    result = planner.plan_to_pose(q_start, goal, seed=3)
+    assert result.success, result.message
+    clear = PandaCollisionWorld(kinematics, planner.scene, CollisionMargins(objects=0.029, table=0.005))
+    ends = np.stack([kinematics.forward_kinematics(q_start)[:3, 3], goal[:3, 3]])
+    far = [q for q in result.trajectory.q
+           if np.linalg.norm(ends - kinematics.forward_kinematics(q)[:3, 3], axis=1).min() > config.clearance_release]
+    assert far, "the path never leaves the ends' neighbourhoods: the test checks nothing"
+    assert all(clear.is_collision_free(q) for q in far)
+    assert not clear.is_collision_free(result.trajectory.q[-1])  # the goal itself is within 3 cm of the wall
+    with pytest.raises(ValueError, match="clearance"):
+        with_clearance(0.5)
+    with pytest.raises(ValueError, match="clearance"):
+        PlannerConfig(clearance=0.001)  # below the margin the search must keep anyway
+
+
+def test_start_in_the_joint_limit_margin_is_planned_from(wall_planner):
+    """A visited state between a joint limit and the planner's bounds (``joint_limit_margin`` inside it) is
+    planned from, not refused by OMPL (DAgger relabels start at such states)."""
+    planner = wall_planner
+    q_start = planner.solve_ik(tcp_pose([0.0, -0.15, 0.05]), REST_QPOS).copy()
+    q_start[6] = planner.kin.lower[6] + 0.3 * planner.config.joint_limit_margin
+    assert planner.is_collision_free(q_start)
+    result = planner.plan_to_pose(q_start, tcp_pose([0.0, 0.15, 0.05]), seed=3)
+    assert result.success, result.message
+    assert np.abs(result.trajectory.q[0] - q_start).max() <= planner.config.joint_limit_margin
 
 
 def test_failure_reasons(wall_planner):
