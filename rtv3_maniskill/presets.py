@@ -13,7 +13,10 @@ twists executed as commanded up to 0.3 m/s, every contact counted, the ``tuned``
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
+CHECKPOINTS_DIR = Path(__file__).resolve().parent / "checkpoints"
+"""Where the package's RT-V3 checkpoints lie (one folder each, with its model card)."""
 GOAL_RULES = ("all", "reachable")
 """``all``: every grasp candidate (each passed the floating-hand test); ``reachable``: only those with a
 collision-free IK solution at the pre-grasp and a free straight approach (``benchmarks.goals``)."""
@@ -35,12 +38,20 @@ class ScenePreset:
     fusion: str
     """RT-V3's fusion (a name of ``shared_control.config.FUSION_PRESETS``), chosen on the preset's
     validation scenes; ``--fusion`` overrides it."""
+    checkpoint: str
+    """RT-V3's prior: a checkpoint folder of the package (:data:`CHECKPOINTS_DIR`), chosen on the preset's
+    validation scenes; ``--policy.path`` overrides it."""
+
+    @property
+    def policy_path(self) -> Path:
+        """The folder of this preset's checkpoint (``config.json`` + ``model.safetensors``)."""
+        return CHECKPOINTS_DIR / self.checkpoint
 
     def env_kwargs(self) -> dict:
         """The ``GraspClutter-v1`` keyword arguments of this preset."""
         kwargs = asdict(self)
-        kwargs.pop("goals")
-        kwargs.pop("fusion")
+        for name in ("goals", "fusion", "checkpoint"):
+            kwargs.pop(name)
         return kwargs
 
 
@@ -52,9 +63,9 @@ PRESETS: dict[str, ScenePreset] = {
     # help for the noisy and single-DoF users without losing trials to Direct for the laggy and
     # mode-switching ones. docs/RESULTS.md, "The paper preset".
     "paper": ScenePreset(scene_type="packed_ycb", object_source="ycb", execution="capped", self_contacts=False,
-                         goals="all", fusion="tuned_ycb"),
+                         goals="all", fusion="tuned_ycb", checkpoint="rtv3_grasp_clutter"),
     "easy": ScenePreset(scene_type="mixed", object_source="procedural", execution="capped", self_contacts=True,
-                        goals="reachable", fusion="tuned"),
+                        goals="reachable", fusion="tuned", checkpoint="rtv3_grasp_clutter"),
 }
 
 

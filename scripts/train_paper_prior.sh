@@ -1,37 +1,41 @@
 #!/usr/bin/env bash
-# The prior for the paper preset (YCB-sized packed scenes, every floating-hand goal), from a clean clone:
+# The prior for the paper preset, trained from scratch on paper-like scenes, from a clean clone:
 #
-#   1. planner demonstrations on paper-preset scenes (rtv3 generate --preset paper, seed block 21:
-#      scenes 2100000..; starts drawn around the ready pose as the authors do);
-#   2. ROUNDS DAgger rounds, each started from the prior before it (round 1: the shipped prior):
-#      roll that prior out on fresh paper-preset scenes (seed block 22 + r) alone and under RT-V3
-#      (the preset's fusion) with the noisy and single-DoF users, re-plan with the motion planner
-#      from visited states (most of them from the last second of failed rollouts), then fine-tune
-#      that prior on the demonstrations and every round's relabels so far, through the compact cache
-#      (rtv3 compact-cache build / train / finish; CPU or, with DEVICE=cuda, a GPU), checkpoints
-#      every SAVE_FREQ steps. The demonstrations alone push the arm into the table (docs/RESULTS.md,
-#      "A prior for these scenes"); the relabels show it the recoveries from its own states;
-#   3. the last round's last checkpoint is the paper prior (OUT/final).
-# Validation uses seed block 8 (rtv3 evaluate planning --preset paper --seed 8; rtv3 benchmark-shared
-# --preset paper --seed 8), never the test block 9.
-# Every step resumes when rerun (generation and DAgger skip finished scenes, training goes on from
-# its last checkpoint) and is skipped when its output is complete. Run it from a git worktree at a
-# fixed commit so that work on main cannot change a running job:
+#   1. CHUNKS chunks of planner demonstrations (rtv3 generate, CHUNK_SCENES scenes each, seed blocks
+#      31, 32, ...; 31 is also the pilot's): the paper preset's packed layout with objects from the YCB-sized, procedural and
+#      pybullet sets (OBJECTS; the validation and test scenes hold only the 12 YCB objects), starts drawn
+#      around the ready pose as the authors do, free-space clearance CLEARANCE (chosen by
+#      scripts/paper_prior_pilot.sh); after each chunk the prior trains on every chunk so far through the
+#      compact cache (chunk 1: from scratch, STEPS0 steps; then STEPS more from the previous stage);
+#   2. ROUNDS DAgger rounds (seed blocks 51, 52, ...), each from the stage before: that prior rolls out
+#      alone and under RT-V3 (the preset's fusion) with the noisy and single-DoF users, the planner
+#      re-plans from the visited states (most from the last second of failed rollouts), and the prior
+#      trains STEPS more steps on every demonstration and relabel so far;
+#   3. every stage is evaluated on the validation block (rtv3 evaluate planning --preset paper --seed 8,
+#      EVAL_SCENES scenes, never the test block 9) and added to OUT/curve.csv and OUT/curve.png
+#      (validation SR / CR against trajectories seen); the stage with the best validation SR is copied
+#      to OUT/final.
+# Every step resumes when rerun (generation and DAgger skip finished scenes, training goes on from its
+# last checkpoint, a finished evaluation is kept) and is skipped when its output is complete. Run it
+# from a git worktree at a fixed commit so that work on main cannot change a running job:
 #   git worktree add ../rtv3-paper-prior HEAD && cd ../rtv3-paper-prior && nohup bash scripts/train_paper_prior.sh &
-# Environment: GEN_SCENES, DAGGER_SCENES, ROUNDS, STEPS, LR, BATCH, SAVE_FREQ, WORKERS, DEVICE, OUT trade
-# time for quality.
+# Environment: CHUNKS, CHUNK_SCENES, ROUNDS, DAGGER_SCENES, STEPS0, STEPS, BATCH, WORKERS, EVAL_SCENES,
+# CLEARANCE, DEVICE (cpu or cuda), OUT trade time for quality.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-GEN_SCENES=${GEN_SCENES:-250}
-DAGGER_SCENES=${DAGGER_SCENES:-150}
-ROUNDS=${ROUNDS:-2}
-STEPS=${STEPS:-1500}
-LR=${LR:-1e-4}
+CHUNKS=${CHUNKS:-4}
+CHUNK_SCENES=${CHUNK_SCENES:-500}
+ROUNDS=${ROUNDS:-3}
+DAGGER_SCENES=${DAGGER_SCENES:-300}
+STEPS0=${STEPS0:-6000}
+STEPS=${STEPS:-3000}
 BATCH=${BATCH:-64}
-SAVE_FREQ=${SAVE_FREQ:-250}
-WORKERS=${WORKERS:-1}
+WORKERS=${WORKERS:-2}
+EVAL_SCENES=${EVAL_SCENES:-100}
+CLEARANCE=${CLEARANCE:-0.03}
 DEVICE=${DEVICE:-cpu}
 OUT=${OUT:-outputs/paper_prior}
+OBJECTS=ycb+procedural+random_urdfs
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 bash scripts/setup.sh
 # LeRobot reads datasets through Hugging Face `datasets`, which keeps an uncompressed copy of each one in
@@ -42,33 +46,57 @@ if [[ -z ${HF_DATASETS_CACHE:-} ]]; then
   mkdir -p "$HF_DATASETS_CACHE"
   trap 'rm -rf "$HF_DATASETS_CACHE"' EXIT
 fi
-mkdir -p data "$OUT"
+mkdir -p data/paper_prior "$OUT"
 rtv3=.venv/bin/rtv3
+# A fresh RTV3Config in the shipped prior's architecture, with its closed-loop regularisers.
+fresh=(--set point_stem_poolings=0 --set num_points=512 --set rotation_conditioning='"sampled"'
+       --set twist_noise_linear=0.05 --set twist_noise_angular=0.25 --set history_rotation_resample_prob=0.5)
 
-$rtv3 generate --preset paper --num-scenes "$GEN_SCENES" --output data/paper_demos --end-at pregrasp \
-    --grasps-per-scene 16 --num-points 512 --seed 21 --workers "$WORKERS"
-
-fine_tune() {  # NAME INIT STEPS DATASETS... -> OUT/NAME (cache, run)
-  local name=$1 init=$2 steps=$3; shift 3
-  local roots=()
+stage() {  # NAME INIT(fresh|checkpoint) STEPS LR DATASETS... -> OUT/NAME/run/checkpoints/last, evaluated
+  local name=$1 init=$2 steps=$3 lr=$4; shift 4
+  local dir=$OUT/$name roots=() start=()
   for d in "$@"; do roots+=(--dataset.root "$d"); done
-  [[ -f $OUT/$name/cache/summary.json ]] || $rtv3 compact-cache build "${roots[@]}" --output "$OUT/$name/cache" \
-      --policy.path "$init"
-  $rtv3 compact-cache train --cache "$OUT/$name/cache" --output "$OUT/$name/run" --steps "$steps" \
-      --batch-size "$BATCH" --save-freq "$SAVE_FREQ" --device "$DEVICE" --lr "$LR" --lr-decay 0.998 --min-lr 1e-5
-  $rtv3 compact-cache finish "$OUT/$name/run/checkpoints/last"
+  if [[ $init == fresh ]]; then start=("${fresh[@]}"); else start=(--policy.path "$init"); fi
+  mkdir -p "$dir"
+  [[ -f $dir/cache/summary.json ]] || $rtv3 compact-cache build "${roots[@]}" --output "$dir/cache" \
+      --max-mib 8000 "${start[@]}"
+  if [[ ! -f $dir/run/checkpoints/last/model.safetensors || ! -f $dir/finished ]]; then
+    $rtv3 compact-cache train --cache "$dir/cache" --output "$dir/run" --steps "$steps" --batch-size "$BATCH" \
+        --save-freq 500 --log-freq 250 --device "$DEVICE" --lr "$lr" --lr-decay 0.9995 --min-lr 1e-5
+    $rtv3 compact-cache finish "$dir/run/checkpoints/last"
+    touch "$dir/finished"
+  fi
+  [[ -f $dir/planning/planning_summary.json ]] || $rtv3 evaluate planning --preset paper --seed 8 \
+      --scenes "$EVAL_SCENES" --policy.path "$dir/run/checkpoints/last" --output "$dir/planning"
+  .venv/bin/python scripts/learning_curve.py "$OUT"
 }
 
-prior=rtv3_maniskill/checkpoints/rtv3_grasp_clutter
-datasets=(data/paper_demos)
-for ((r = 1; r <= ROUNDS; r++)); do
-  $rtv3 dagger --preset paper --policy.path "$prior" --output "data/paper_dagger_r$r" \
-      --num-scenes "$DAGGER_SCENES" --seed $((22 + r)) --drivers prior,rtv3:noisy,rtv3:single_dof,prior \
-      --targets-per-scene 4 --relabels-per-rollout 1 --failure-relabels 4 --workers "$WORKERS"
-  datasets+=("data/paper_dagger_r$r")
-  fine_tune "round$r" "$prior" "$STEPS" "${datasets[@]}"
-  prior="$OUT/round$r/run/checkpoints/last"
+datasets=()
+prior=fresh
+for ((c = 1; c <= CHUNKS; c++)); do
+  chunk=data/paper_prior/demos_$c
+  [[ -f $chunk/rtv3_summary.json ]] || $rtv3 generate --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
+      --num-scenes "$CHUNK_SCENES" --seed $((30 + c)) --output "$chunk" --end-at pregrasp --grasps-per-scene 16 \
+      --num-points 512 --workers "$WORKERS"
+  datasets+=("$chunk")
+  if [[ $prior == fresh ]]; then
+    stage "demos_$c" fresh "$STEPS0" 1e-3 "${datasets[@]}"
+  else
+    stage "demos_$c" "$prior" "$STEPS" 3e-4 "${datasets[@]}"
+  fi
+  prior=$OUT/demos_$c/run/checkpoints/last
 done
+for ((r = 1; r <= ROUNDS; r++)); do
+  relabels=data/paper_prior/dagger_$r
+  [[ -f $relabels/rtv3_summary.json ]] || $rtv3 dagger --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
+      --policy.path "$prior" --output "$relabels" --num-scenes "$DAGGER_SCENES" --seed $((50 + r)) \
+      --drivers prior,rtv3:noisy,rtv3:single_dof,prior --targets-per-scene 8 --relabels-per-rollout 1 \
+      --failure-relabels 4 --workers "$WORKERS"
+  datasets+=("$relabels")
+  stage "dagger_$r" "$prior" "$STEPS" 3e-4 "${datasets[@]}"
+  prior=$OUT/dagger_$r/run/checkpoints/last
+done
+best=$(.venv/bin/python scripts/learning_curve.py "$OUT" --best)
 mkdir -p "$OUT/final"
-cp "$prior/"{config.json,model.safetensors} "$OUT/final/"
-echo "paper prior: $OUT/final"
+cp "$best/"{config.json,model.safetensors} "$OUT/final/"
+echo "paper prior: $OUT/final (from $best)"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -135,6 +136,37 @@ def test_commands_running_rtv3_take_the_presets_fusion_and_fusion_overrides_it(c
     extra = dict(demo=["--no-video"], teleop=["--headless", "--input", "simulated:noisy"], dagger=[])[command]
     with pytest.raises(SystemExit, match="unknown fusion preset 'gentle'; known: tuned, tuned_ycb, paper"):
         main([command, *required, *extra, "--fusion", "gentle"])
+
+
+@pytest.mark.parametrize("command", ["demo", "teleop", "dagger", "evaluate"])
+def test_commands_running_rtv3_take_the_presets_checkpoint_and_policy_path_overrides_it(command, tmp_path):
+    from rtv3_maniskill.cli.dagger import add_arguments as dagger_arguments
+    from rtv3_maniskill.cli.demo import add_arguments as demo_arguments
+    from rtv3_maniskill.cli.evaluate import add_arguments as evaluate_arguments
+    from rtv3_maniskill.cli.scene_args import policy_path
+    from rtv3_maniskill.cli.teleop import add_arguments as teleop_arguments
+    from rtv3_maniskill.policies.rtv3.checkpoints import CHECKPOINT_FILES
+
+    for preset in PRESETS.values():
+        assert all((preset.policy_path / name).is_file() for name in CHECKPOINT_FILES), preset
+        assert "checkpoint" not in preset.env_kwargs()
+    parser = argparse.ArgumentParser()
+    dict(demo=demo_arguments, teleop=teleop_arguments, dagger=dagger_arguments, evaluate=evaluate_arguments)[command](
+        parser)
+    required = dict(dagger=["--output", str(tmp_path / "d")], evaluate=["planning"]).get(command, [])
+    for name, preset in PRESETS.items():
+        assert policy_path(parser.parse_args([*required, "--preset", name])) == preset.policy_path
+    assert policy_path(parser.parse_args([*required, "--preset", "paper", "--policy.path", str(tmp_path)])) == tmp_path
+
+
+def test_the_shared_control_benchmark_takes_the_presets_checkpoint():
+    from rtv3_maniskill.cli.benchmark_shared import add_arguments, config_settings
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    for name, preset in PRESETS.items():
+        assert config_settings(parser.parse_args(["--preset", name]))["policy_path"] == preset.policy_path
+    assert config_settings(parser.parse_args(["--policy.path", "elsewhere"]))["policy_path"] == Path("elsewhere")
 
 
 @pytest.mark.sim

@@ -92,9 +92,10 @@ class BenchmarkConfig:
     output: Path = _option(Path("outputs/benchmark_shared"),
                            help="folder for results.csv, goals.csv, summary.csv, summary.md, success_rates.png")
     policy_path: Path | None = _option(
-        None, flags=("--policy.path",),
-        help="RT-V3 checkpoint folder (config.json + model.safetensors) or Hub repo id; default: the shipped "
-             "rtv3_maniskill/checkpoints/rtv3_grasp_clutter. Loaded only for the methods that need it")
+        None, flags=("--policy.path",), preset=True,
+        help="RT-V3 checkpoint folder (config.json + model.safetensors) or Hub repo id (default: the preset's; "
+             "None: the shipped rtv3_maniskill/checkpoints/rtv3_grasp_clutter). Loaded only for the methods "
+             "that need it")
     scenes: int = _option(50, help="clutter scenes (scene i: seed SEED*100000 + i)")
     users: Sequence[str] = _option(DEFAULT_USERS, known=_known_users, help="comma-separated simulated users")
     methods: Sequence[str] = _option(factory=_default_methods, known=_known_methods,

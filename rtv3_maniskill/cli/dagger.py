@@ -17,6 +17,7 @@ from rtv3_maniskill.cli.scene_args import (
     add_scene_arguments,
     check_push_argument,
     fusion_name,
+    policy_path,
     push_if_asked,
     resolve_scene_arguments,
 )
@@ -25,7 +26,7 @@ from rtv3_maniskill.datagen.dagger_config import DEFAULT_DRIVERS, FAILURE_WINDOW
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
-                        help="checkpoint whose closed loop is rolled out (default: the shipped one)")
+                        help="checkpoint whose closed loop is rolled out (default: the scene preset's)")
     parser.add_argument("--output", type=Path, required=True, help="dataset folder (LeRobot root)")
     parser.add_argument("--num-scenes", type=int, default=50, help="training scenes to roll out in")
     parser.add_argument("--seed", type=int, default=5,
@@ -54,7 +55,7 @@ def dagger_config(args: argparse.Namespace) -> DaggerConfig:
     """
     resolve_scene_arguments(args)
     return DaggerConfig(
-        output=args.output, policy_path=args.policy_path, scenes=args.num_scenes, seed=args.seed,
+        output=args.output, policy_path=policy_path(args), scenes=args.num_scenes, seed=args.seed,
         drivers=tuple(d for d in args.drivers.split(",") if d.strip()),
         targets_per_scene=args.targets_per_scene or None, relabels_per_rollout=args.relabels_per_rollout,
         failure_relabels=args.failure_relabels, scene_type=args.scene_type, objects=args.objects,
@@ -71,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     from rtv3_maniskill.policies.rtv3.checkpoints import CheckpointError, resolve_checkpoint
 
     try:
-        resolve_checkpoint(args.policy_path)
+        resolve_checkpoint(policy_path(args))
     except CheckpointError as err:
         raise SystemExit(f"error: {err}") from None
     try:

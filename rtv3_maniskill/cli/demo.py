@@ -14,7 +14,13 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from rtv3_maniskill.cli.scene_args import add_fusion_argument, add_scene_arguments, fusion_name, scene_settings
+from rtv3_maniskill.cli.scene_args import (
+    add_fusion_argument,
+    add_scene_arguments,
+    fusion_name,
+    policy_path,
+    scene_settings,
+)
 
 if TYPE_CHECKING:
     import numpy as np
@@ -32,8 +38,8 @@ def _pauses(text: str) -> tuple[int, int]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
-                        help="RT-V3 checkpoint folder (config.json + model.safetensors); "
-                             "default: rtv3_maniskill/checkpoints/rtv3_grasp_clutter")
+                        help="RT-V3 checkpoint folder (config.json + model.safetensors) or Hub repo id; "
+                             "default: the scene preset's")
     parser.add_argument("--seed", type=int, default=900000,
                         help="scene seed (same seed, same scene and target); default: the first scene of the test "
                              "block, with its own target draw (not picked for a result)")
@@ -237,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     try:
-        policy = load_policy(args.policy_path)
+        policy = load_policy(policy_path(args))
     except FileNotFoundError as err:
         raise SystemExit(f"error: {err}") from None
     args.output.mkdir(parents=True, exist_ok=True)

@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from rtv3_maniskill.cli.scene_args import add_scene_arguments, scene_settings
+from rtv3_maniskill.cli.scene_args import add_scene_arguments, policy_path, scene_settings
 
 
 def _seed_range(text: str) -> tuple[int, int]:
@@ -59,7 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "any robot contact, timeout after 150 steps. Finished (scene, grasp) trials are skipped on a rerun.",
     )
     plan.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
-                      help="RT-V3 checkpoint folder (needed unless --planner neoss)")
+                      help="RT-V3 checkpoint folder or Hub repo id (default: the scene preset's; unused with --planner "
+                           "neoss)")
     plan.add_argument("--planner", default="policy", choices=["policy", "neoss"],
                       help="policy: the prior's most likely actions; neoss: the paper's reactive baseline, a straight "
                            "twist to the pre-grasp through the NEO collision damper (Table I's NeoSS row)")
@@ -121,7 +122,8 @@ def _run_planning(args: argparse.Namespace) -> int:
 
     try:
         config = PlanningConfig(
-            output=args.output, policy_path=args.policy_path, scenes=args.scenes, seed=args.seed,
+            output=args.output, policy_path=None if args.planner == "neoss" else policy_path(args),
+            scenes=args.scenes, seed=args.seed,
             max_grasps_per_scene=None if args.max_grasps_per_scene == 0 else args.max_grasps_per_scene,
             context=args.context, point_cloud=args.point_cloud, **scene_settings(args), max_steps=args.max_steps,
             planner=args.planner,

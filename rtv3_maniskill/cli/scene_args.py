@@ -10,6 +10,7 @@ and ``--fusion`` the preset's RT-V3 fusion (``tuned_ycb`` for paper, ``tuned`` f
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from rtv3_maniskill.datagen.hub import HubPushError, check_repo_id, push_dataset
@@ -55,6 +56,12 @@ def fusion_name(args: argparse.Namespace) -> str:
     """RT-V3's fusion preset of the parsed options: ``--fusion``, else the scene preset's. The name is
     checked where the fusion is built (``SharedControlConfig.preset``: a clear error naming the known ones)."""
     return args.fusion or get_preset(args.preset).fusion
+
+
+def policy_path(args: argparse.Namespace) -> Path:
+    """RT-V3's checkpoint of the parsed options: ``--policy.path``, else the scene preset's (checked where it
+    is loaded: ``resolve_checkpoint``, a clear error naming the missing file)."""
+    return args.policy_path or get_preset(args.preset).policy_path
 
 
 def add_clearance_argument(parser: argparse.ArgumentParser) -> None:

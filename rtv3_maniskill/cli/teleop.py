@@ -18,6 +18,7 @@ from rtv3_maniskill.cli.scene_args import (
     add_scene_arguments,
     check_push_argument,
     fusion_name,
+    policy_path,
     push_if_asked,
     scene_settings,
 )
@@ -44,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_fusion_argument(parser)
     parser.add_argument("--target-grasp", type=int, default=None, help="target grasp index (default: drawn)")
     parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
-                        help="RT-V3 checkpoint folder (default: the bundled one)")
+                        help="RT-V3 checkpoint folder (config.json + model.safetensors) or Hub repo id; "
+                             "default: the scene preset's")
     parser.add_argument("--user-seed", type=int, default=0, help="seed of a simulated user's randomness")
     parser.add_argument("--screenshot", type=Path, default=None, help="PNG written by F12 (or at --screenshot-step)")
     parser.add_argument("--screenshot-step", type=int, default=None, help="save --screenshot after this many steps")
@@ -78,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         from rtv3_maniskill.policies.rtv3.checkpoints import CheckpointError, resolve_checkpoint
 
         try:
-            resolve_checkpoint(args.policy_path)
+            resolve_checkpoint(policy_path(args))
         except CheckpointError as err:
             raise SystemExit(f"error: {err}") from None
     if args.headless and not args.input.startswith("simulated:"):
@@ -94,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     config = SessionConfig(
         method=args.method, input=args.input, scene_seed=args.scene_seed, trials=args.trials,
         participant=args.participant, record=args.record, resume=args.resume, headless=args.headless,
-        realtime=None if args.realtime == "auto" else args.realtime == "on", policy_path=args.policy_path,
+        realtime=None if args.realtime == "auto" else args.realtime == "on", policy_path=policy_path(args),
         **scene_settings(args), fusion=fusion_name(args), target_grasp=args.target_grasp,
         user_seed=args.user_seed,
         screenshot=args.screenshot, screenshot_step=args.screenshot_step,
