@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # The prior for the paper preset, trained from scratch on paper-like scenes, from a clean clone:
 #
-#   1. CHUNKS chunks of planner demonstrations (rtv3 generate, CHUNK_SCENES scenes each, seed blocks
-#      31, 32, ...; 31 is also the pilot's): the paper preset's packed layout with objects from the YCB-sized, procedural and
-#      pybullet sets (OBJECTS; the validation and test scenes hold only the 12 YCB objects), starts drawn
+#   1. chunks of planner demonstrations (rtv3 generate, CHUNK_SCENES: the scenes of each, seed blocks 31,
+#      32, ...; 31 is also the pilot's): the paper preset's packed layout with objects from the YCB-sized,
+#      procedural and pybullet sets (OBJECTS; the validation and test scenes hold only the 12 YCB objects), starts drawn
 #      around the ready pose as the authors do, free-space clearance CLEARANCE (chosen by
 #      scripts/paper_prior_pilot.sh); after each chunk the prior trains on every chunk so far through the
 #      compact cache (chunk 1: from scratch, STEPS0 steps; then STEPS more from the previous stage);
@@ -19,16 +19,15 @@
 # last checkpoint, a finished evaluation is kept) and is skipped when its output is complete. Run it
 # from a git worktree at a fixed commit so that work on main cannot change a running job:
 #   git worktree add ../rtv3-paper-prior HEAD && cd ../rtv3-paper-prior && nohup bash scripts/train_paper_prior.sh &
-# Environment: CHUNKS, CHUNK_SCENES, ROUNDS, DAGGER_SCENES, STEPS0, STEPS, BATCH, WORKERS, EVAL_SCENES,
+# Environment: CHUNK_SCENES, ROUNDS, DAGGER_SCENES, STEPS0, STEPS, BATCH, WORKERS, EVAL_SCENES,
 # CLEARANCE, DEVICE (cpu or cuda), OUT trade time for quality.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-CHUNKS=${CHUNKS:-4}
-CHUNK_SCENES=${CHUNK_SCENES:-500}
+CHUNK_SCENES=${CHUNK_SCENES:-200 300 500 1000 1000}
 ROUNDS=${ROUNDS:-3}
 DAGGER_SCENES=${DAGGER_SCENES:-300}
 STEPS0=${STEPS0:-6000}
-STEPS=${STEPS:-3000}
+STEPS=${STEPS:-4000}
 BATCH=${BATCH:-64}
 WORKERS=${WORKERS:-2}
 EVAL_SCENES=${EVAL_SCENES:-100}
@@ -71,12 +70,19 @@ stage() {  # NAME INIT(fresh|checkpoint) STEPS LR DATASETS... -> OUT/NAME/run/ch
   .venv/bin/python scripts/learning_curve.py "$OUT"
 }
 
+generated() {  # FOLDER SCENES: whether rtv3 generate has finished SCENES scenes there
+  [[ -f $1/rtv3_summary.json ]] && (( $(.venv/bin/python -c \
+      'import json, sys; print(json.load(open(sys.argv[1]))["scenes"])' "$1/rtv3_summary.json") >= $2 ))
+}
+
 datasets=()
 prior=fresh
-for ((c = 1; c <= CHUNKS; c++)); do
+c=0
+for scenes in $CHUNK_SCENES; do
+  c=$((c + 1))
   chunk=data/paper_prior/demos_$c
-  [[ -f $chunk/rtv3_summary.json ]] || $rtv3 generate --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
-      --num-scenes "$CHUNK_SCENES" --seed $((30 + c)) --output "$chunk" --end-at pregrasp --grasps-per-scene 16 \
+  generated "$chunk" "$scenes" || $rtv3 generate --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
+      --num-scenes "$scenes" --seed $((30 + c)) --output "$chunk" --end-at pregrasp --grasps-per-scene 16 \
       --num-points 512 --workers "$WORKERS"
   datasets+=("$chunk")
   if [[ $prior == fresh ]]; then
