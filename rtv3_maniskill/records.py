@@ -10,19 +10,36 @@ Every row is flushed and fsync'd as it is written. A row torn by a killed proces
 does not end with a newline) is cut off when the store is opened, so it is neither counted nor
 glued to the next row. This module also owns the scene numbering and the seeded choice of
 targets that every run shares, so that the same seed means the same scenes everywhere.
+
+One process writes a run folder at a time: :func:`claim_folder` takes an exclusive ``flock`` on
+``<folder>/.rtv3-writer.lock`` (the kernel drops it when the process ends, SIGKILL included) and a
+second writer gets :class:`FolderBusy`, naming the holding process. Every writing
+:class:`RecordStore` claims its folder; the commands claim theirs before they build anything.
+Readers (:meth:`RecordStore.read`) take no lock. A store written before the lock existed may
+hold a key twice: the rows keep the first, and one log line names the repeated keys.
 """
 
 from __future__ import annotations
 
 import csv
+import fcntl
 import io
 import json
+import logging
 import os
+import socket
+import sys
+import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+log = logging.getLogger(__name__)
+
+LOCK_FILE = ".rtv3-writer.lock"
+"""The lock file a writer holds in its run folder."""
 
 SCENE_SEED_STRIDE = 100000
 """Scene ``i`` of a run with seed ``s`` has scene seed ``s * SCENE_SEED_STRIDE + i``."""
@@ -52,6 +69,87 @@ def select_targets(valid: Iterable[int], cap: int | None, seed: int, scene_seed:
 
 class SettingsMismatch(ValueError):
     """A run folder holds records made with other settings (the message names them)."""
+
+
+class FolderBusy(RuntimeError):
+    """Another process is writing this run folder (the message names the folder and the process)."""
+
+
+class FolderClaim:
+    """This process's exclusive hold on a run folder (see :func:`claim_folder`); :meth:`release` gives it up."""
+
+    _held: dict[Path, list] = {}  # folder -> [file object holding the flock, claims in this process]
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self._released = False
+
+    def release(self) -> None:
+        """Give up this claim; the lock goes when the process's last claim on the folder does (idempotent)."""
+        if self._released:
+            return
+        self._released = True
+        entry = FolderClaim._held.get(self.folder)
+        if entry is None:
+            return
+        entry[1] -= 1
+        if entry[1] == 0:
+            del FolderClaim._held[self.folder]
+            entry[0].close()  # closing the descriptor drops the flock
+
+    def __enter__(self) -> FolderClaim:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.release()
+
+
+def claim_folder(folder: str | Path) -> FolderClaim:
+    """Claim ``folder`` (created if missing) for writing by this process.
+
+    Claims nest within a process (every store of a run claims the run's folder); another process
+    holding the folder raises :class:`FolderBusy` at once, naming the folder and that process.
+    """
+    folder = Path(folder).expanduser().absolute()
+    entry = FolderClaim._held.get(folder)
+    if entry is None:
+        folder.mkdir(parents=True, exist_ok=True)
+        handle = open(folder / LOCK_FILE, "a+")
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "another process"
+            handle.close()
+            raise FolderBusy(f"{folder} is being written by {holder}; wait for that run to end (or stop it) "
+                             "before you resume here, or write to another folder") from None
+        handle.seek(0)
+        handle.truncate()
+        command = " ".join([Path(sys.argv[0]).name, *sys.argv[1:3]]) if sys.argv and sys.argv[0] else "python"
+        handle.write(f"pid {os.getpid()} on {socket.gethostname()} (`{command}`, since "
+                     f"{time.strftime('%Y-%m-%d %H:%M:%S')})\n")
+        handle.flush()
+        entry = FolderClaim._held[folder] = [handle, 0]
+    entry[1] += 1
+    return FolderClaim(folder)
+
+
+def first_of_each_key(rows: list[dict[str, str]], key: Sequence[str], source: str | Path) -> list[dict[str, str]]:
+    """``rows`` with each ``key`` once (its first row); logs one line naming the keys found more than once."""
+    seen: dict[tuple[str, ...], int] = {}
+    kept = []
+    for row in rows:
+        k = tuple(str(row[c]) for c in key)
+        seen[k] = seen.get(k, 0) + 1
+        if seen[k] == 1:
+            kept.append(row)
+    repeated = [k for k, n in seen.items() if n > 1]
+    if repeated:
+        names = ", ".join("/".join(k) for k in repeated[:5]) + (f" and {len(repeated) - 5} more" if len(repeated) > 5
+                                                              else "")
+        log.warning("%s holds %d record(s) more than once (%s: %s), counted once each: written by two runs at a "
+                    "time before run folders were locked", source, len(repeated), "/".join(key), names)
+    return kept
 
 
 def _fsync_write(path: Path, text: str) -> None:
@@ -90,12 +188,18 @@ class RecordStore:
         self.settings_path = Path(settings_path) if settings_path is not None else self.path.with_name(
             self.path.stem + ".settings.json")
         self._is_complete = is_complete
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._cut_torn_tail()
-        self.rows: list[dict[str, str]] = self.read(self.path, self.fields, is_complete) if self.path.exists() else []
-        self._by_key = {self.key(row): row for row in self.rows}
-        if settings is not None:
-            self._guard_settings(settings)
+        self._claim = claim_folder(self.settings_path.parent)  # FolderBusy while another process writes it
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._cut_torn_tail()
+            self.rows: list[dict[str, str]] = (self.read(self.path, self.fields, is_complete, key=self.key_fields)
+                                               if self.path.exists() else [])
+            self._by_key = {self.key(row): row for row in self.rows}
+            if settings is not None:
+                self._guard_settings(settings)
+        except BaseException:
+            self._claim.release()
+            raise
         new = not self.path.exists() or self.path.stat().st_size == 0
         self._file = open(self.path, "a", newline="")
         self._writer = csv.DictWriter(self._file, self.fields)
@@ -107,9 +211,11 @@ class RecordStore:
 
     @staticmethod
     def read(path: str | Path, fields: Sequence[str],
-             is_complete: Callable[[dict[str, str]], bool] | None = None) -> list[dict[str, str]]:
+             is_complete: Callable[[dict[str, str]], bool] | None = None,
+             key: Sequence[str] | None = None) -> list[dict[str, str]]:
         """The complete rows of a record file (strings). A torn row (missing or extra columns,
-        no newline at the end of the file, or failing ``is_complete``) is skipped.
+        no newline at the end of the file, or failing ``is_complete``) is skipped. With ``key``,
+        a key found more than once keeps its first row (:func:`first_of_each_key`).
 
         Raises:
             FileNotFoundError: no file at ``path``.
@@ -135,7 +241,7 @@ class RecordStore:
             if is_complete is not None and not is_complete(row):
                 continue
             rows.append(row)
-        return rows
+        return rows if key is None else first_of_each_key(rows, key, path)
 
     def key(self, row: dict[str, Any]) -> tuple[str, ...]:
         """The identifying columns of ``row``, as strings."""
@@ -167,6 +273,7 @@ class RecordStore:
 
     def close(self) -> None:
         self._file.close()
+        self._claim.release()
 
     def __enter__(self) -> RecordStore:
         return self

@@ -36,9 +36,15 @@ if [[ "$have" != "$want" && ! ( -z "$extras" && "$have" == "${want}[dev]" ) ]]; 
     exit 1
   fi
   log "installing rtv3-maniskill${extras} and its pinned dependencies into .venv (first time: several minutes, ~5 GB of wheels, ~10 GB installed)"
-  .venv/bin/pip install --quiet --upgrade "pip>=24"
-  .venv/bin/pip install --quiet -e ".${extras}"
-  .venv/bin/pip install --quiet --no-deps -e "./$plugin"
+  # pip's errors reach the terminal; its notes about index locations this machine's pip configuration names
+  # but lacks do not (they are the machine's, not the project's, and read like failures).
+  pip_quiet() {
+    .venv/bin/pip install --quiet "$@" 2>&1 | { grep -v "^WARNING: Location '.*' is ignored" || true; } >&2
+    return "${PIPESTATUS[0]}"
+  }
+  pip_quiet --upgrade "pip>=24"
+  pip_quiet -e ".${extras}"
+  pip_quiet --no-deps -e "./$plugin"
   echo "$want" > $stamp
 fi
 

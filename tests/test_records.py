@@ -2,9 +2,20 @@
 
 from __future__ import annotations
 
+import logging
+import subprocess
+import sys
+
 import pytest
 
-from rtv3_maniskill.records import RecordStore, SettingsMismatch, scene_seeds, select_targets
+from rtv3_maniskill.records import (
+    FolderBusy,
+    RecordStore,
+    SettingsMismatch,
+    claim_folder,
+    scene_seeds,
+    select_targets,
+)
 
 FIELDS = ("scene_seed", "grasp_index", "outcome", "steps")
 KEY = ("scene_seed", "grasp_index")
@@ -60,3 +71,48 @@ def test_scene_numbering_and_seeded_targets():
     assert len(picks) > 1  # the subset depends on the scene
     with pytest.raises(ValueError, match=">= 1"):
         select_targets(valid, 0, 9, 900000, salt=17)
+
+
+_HOLD = """
+import sys, time
+from rtv3_maniskill.records import RecordStore
+store = RecordStore(sys.argv[1], ("k", "v"), ("k",), settings={"a": 1})
+print("holding", flush=True)
+time.sleep(60)
+"""
+
+
+def _hold_in_another_process(path):
+    proc = subprocess.Popen([sys.executable, "-c", _HOLD, str(path)], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "holding"
+    return proc
+
+
+def test_a_second_writer_of_a_folder_is_stopped_with_the_holder_named_and_the_lock_dies_with_it(tmp_path):
+    path = tmp_path / "run" / "results.csv"
+    holder = _hold_in_another_process(path)
+    try:
+        with pytest.raises(FolderBusy, match=rf"{tmp_path / 'run'} is being written by pid {holder.pid}"):
+            RecordStore(path, ("k", "v"), ("k",), settings={"a": 1})
+        with pytest.raises(FolderBusy):  # a command claims the folder before it builds anything
+            claim_folder(tmp_path / "run")
+        assert RecordStore.read(path, ("k", "v")) == []  # readers are not locked out
+    finally:
+        holder.kill()  # SIGKILL: the kernel drops the lock with the process
+        holder.wait()
+    with RecordStore(path, ("k", "v"), ("k",), settings={"a": 1}) as store:
+        store.append({"k": 1, "v": 2})
+        with RecordStore(tmp_path / "run" / "other.csv", ("k",), ("k",)):  # claims nest in one process
+            pass
+    assert RecordStore.read(path, ("k", "v")) == [{"k": "1", "v": "2"}]
+
+
+def test_a_key_written_twice_counts_once_and_is_named(tmp_path, caplog):
+    path = tmp_path / "results.csv"
+    path.write_text("k,v\n1,a\n2,b\n1,a\n")
+    with caplog.at_level(logging.WARNING, logger="rtv3_maniskill.records"):
+        rows = RecordStore.read(path, ("k", "v"), key=("k",))
+    assert rows == [{"k": "1", "v": "a"}, {"k": "2", "v": "b"}]
+    assert len(caplog.records) == 1 and "1 record(s) more than once (k: 1)" in caplog.records[0].getMessage()
+    with RecordStore(path, ("k", "v"), ("k",)) as store:
+        assert len(store) == 2

@@ -66,7 +66,7 @@ from rtv3_maniskill.benchmarks.planning_success import (
 from rtv3_maniskill.benchmarks.straight_to_pregrasp import StraightToPregrasp
 from rtv3_maniskill.features import CONTEXT_MODES, GRIPPER_OPEN, context_mask
 from rtv3_maniskill.policies.rtv3.checkpoints import load_policy, resolve_checkpoint
-from rtv3_maniskill.records import SCENE_SEED_STRIDE, scene_seeds, select_targets
+from rtv3_maniskill.records import SCENE_SEED_STRIDE, claim_folder, scene_seeds, select_targets
 from rtv3_maniskill.robot.neo_qp import NeoSafetyFilter
 from rtv3_maniskill.robot.planner import PandaPlanner
 from rtv3_maniskill.robot.starts import random_start_configuration
@@ -301,6 +301,12 @@ def run_planning_benchmark(config: PlanningConfig, policy: Any = None, progress:
     settings = config.fingerprint()
     if baseline is not None:
         check_baseline(baseline, settings)  # a missing or mismatched one fails before any trial
+    with claim_folder(config.output):  # one writer per folder: a second run stops here (FolderBusy names the first)
+        return _run_claimed(config, policy, progress, baseline, settings)
+
+
+def _run_claimed(config: PlanningConfig, policy: Any, progress: bool, baseline: Path | None,
+                 settings: dict[str, Any]) -> dict[str, Any]:
     torch.set_num_threads(1)
     if policy is None and config.planner == "neoss":
         policy = StraightToPregrasp()

@@ -47,7 +47,7 @@ def trials_store(output: Path, settings: dict[str, Any] | None) -> RecordStore:
 
 def read_trials(path: Path) -> list[dict[str, str]]:
     """Complete rows of a trials file (a torn or foreign line is skipped)."""
-    return RecordStore.read(path, TRIAL_FIELDS, _is_complete_trial)
+    return RecordStore.read(path, TRIAL_FIELDS, _is_complete_trial, key=("scene_seed", "grasp_index"))
 
 
 def summarize(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:

@@ -58,7 +58,7 @@ def goals_store(output: Path, settings: dict[str, Any]) -> RecordStore:
 def result_rows(path: Path) -> list[dict[str, str]]:
     """The complete rows of a ``results.csv`` (strings; a torn last row is left out)."""
     try:
-        return RecordStore.read(path, RESULT_FIELDS, _is_complete_result)
+        return RecordStore.read(path, RESULT_FIELDS, _is_complete_result, key=RESULT_KEY)
     except ValueError as err:
         raise BenchmarkError(str(err)) from None
 
@@ -77,6 +77,6 @@ def goal_rows(path: Path) -> list[dict[str, str]]:
     if not Path(path).is_file():
         return []
     try:
-        return RecordStore.read(path, GOAL_FIELDS)
+        return RecordStore.read(path, GOAL_FIELDS, key=("scene_seed", "grasp_index"))
     except ValueError as err:
         raise BenchmarkError(str(err)) from None

@@ -40,7 +40,7 @@ from rtv3_maniskill.benchmarks.shared_config import BenchmarkConfig, BenchmarkEr
 from rtv3_maniskill.benchmarks.shared_report import method_label, write_summaries
 from rtv3_maniskill.benchmarks.shared_results import goals_store, results_store
 from rtv3_maniskill.features import pregrasp_poses
-from rtv3_maniskill.records import select_targets
+from rtv3_maniskill.records import claim_folder, select_targets
 from rtv3_maniskill.robot.planner import PandaPlanner
 from rtv3_maniskill.robot.scene_geometry import READY_QPOS
 from rtv3_maniskill.scene_pool import EXECUTORS, run_scenes
@@ -187,7 +187,14 @@ def run_benchmark(config: BenchmarkConfig, policy: Any = None, progress: bool = 
     output = config.output
     if output.exists() and not output.is_dir():
         raise BenchmarkError(f"--output {output} is a file, not a folder; give a folder for the results")
-    output.mkdir(parents=True, exist_ok=True)
+    with claim_folder(output):  # one writer per folder: a second run stops here (FolderBusy names the first)
+        return _run_claimed(config, policy, progress, workers, executor, ray_address)
+
+
+def _run_claimed(config: BenchmarkConfig, policy: Any, progress: bool, workers: int, executor: str,
+                 ray_address: str | None) -> list[dict[str, Any]]:
+    serial = workers == 1 and executor == "local"
+    output = config.output
     policy_path = None
     if config.needs_policy and (policy is None or config.policy_path is not None):
         policy_path = _policy_path(config)

@@ -6,6 +6,8 @@ import argparse
 import importlib
 import sys
 
+from rtv3_maniskill.records import FolderBusy
+
 # name -> (module under rtv3_maniskill.cli, one-line help). Modules load lazily so that
 # `rtv3 --help` stays fast.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -56,6 +58,9 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as err:
         print(f"rtv3 {args.command}: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
+    except FolderBusy as err:  # another run writes the output folder
+        print(f"rtv3 {args.command}: error: {err}", file=sys.stderr)
+        raise SystemExit(1) from None
     except KeyboardInterrupt:  # Ctrl-C: what each command has written so far is kept (its records resume)
         print(f"\nrtv3 {args.command}: interrupted", file=sys.stderr)
         return 130

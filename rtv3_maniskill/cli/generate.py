@@ -24,6 +24,7 @@ from rtv3_maniskill.cli.scene_args import (
     push_if_asked,
     resolve_scene_arguments,
 )
+from rtv3_maniskill.records import claim_folder
 from rtv3_maniskill.robot.planner_config import DEFAULT_CLEARANCE, with_clearance
 
 
@@ -163,16 +164,21 @@ def _run_scene(worker: _Worker, job: tuple[int, list[str]]) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    resolve_scene_arguments(args)
+    _validate(args)
+    check_push_argument(args)
+    args.output = args.output.expanduser().absolute()
+    with claim_folder(args.output):  # one writer per folder: a second run stops here (FolderBusy names the first)
+        return _generate(args)
+
+
+def _generate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from rtv3_maniskill.datagen.lerobot_export import StagedEpisodeError, StagingArea, export_lerobot_dataset
     from rtv3_maniskill.records import scene_seeds
     from rtv3_maniskill.scene_pool import SceneWorkerError, run_scenes
 
-    resolve_scene_arguments(args)
-    _validate(args)
-    check_push_argument(args)
-    args.output = args.output.expanduser().absolute()
     try:  # refuses a folder with attempts made under other settings (not one whose run failed before any)
         with StagingArea(args.output, settings=_settings(args)) as staging:
             attempted = staging.attempts()

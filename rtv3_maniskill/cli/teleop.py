@@ -22,6 +22,7 @@ from rtv3_maniskill.cli.scene_args import (
     push_if_asked,
     scene_settings,
 )
+from rtv3_maniskill.records import claim_folder
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="pace at 20 Hz (auto: on for a person, off for a simulated user)")
     add_scene_arguments(parser, default_preset="paper")
     add_fusion_argument(parser)
+    parser.add_argument("--safety-filter", choices=["neoss"], default=None,
+                        help="put the NEO collision damper (NeoSS) between the assistance and the arm, as "
+                             "benchmark-shared --safety-filter does; recorded sessions name it (method rtv3+neoss)")
     parser.add_argument("--target-grasp", type=int, default=None, help="target grasp index (default: drawn)")
     parser.add_argument("--policy.path", dest="policy_path", type=Path, default=None,
                         help="RT-V3 checkpoint folder (config.json + model.safetensors) or Hub repo id; "
@@ -93,12 +97,14 @@ def run(args: argparse.Namespace) -> int:
     if args.record is not None and args.record.exists() and not args.resume:
         raise SystemExit(f"error: {args.record} already exists; record each session into a new folder, or continue "
                          "it with --resume")
+    if args.resume:  # one writer per session folder: a second resume stops before the scene is built
+        claim_folder(args.record)
     config = SessionConfig(
         method=args.method, input=args.input, scene_seed=args.scene_seed, trials=args.trials,
         participant=args.participant, record=args.record, resume=args.resume, headless=args.headless,
         realtime=None if args.realtime == "auto" else args.realtime == "on", policy_path=policy_path(args),
         **scene_settings(args), fusion=fusion_name(args), target_grasp=args.target_grasp,
-        user_seed=args.user_seed,
+        user_seed=args.user_seed, safety_filter=args.safety_filter,
         screenshot=args.screenshot, screenshot_step=args.screenshot_step,
         trial_config=TrialConfig(timeout_s=args.timeout),
     )

@@ -52,7 +52,7 @@ from rtv3_maniskill.datagen.demonstrations import DemonstrationRecorder, state_v
 from rtv3_maniskill.datagen.lerobot_export import StagedScene, StagingArea, export_lerobot_dataset
 from rtv3_maniskill.features import context_mask
 from rtv3_maniskill.policies.rtv3.checkpoints import load_policy, resolve_checkpoint
-from rtv3_maniskill.records import scene_seeds, select_targets
+from rtv3_maniskill.records import claim_folder, scene_seeds, select_targets
 from rtv3_maniskill.robot.planner import PandaPlanner
 from rtv3_maniskill.robot.planner_config import with_clearance
 from rtv3_maniskill.robot.scene_geometry import READY_QPOS
@@ -258,7 +258,13 @@ def run_dagger(config: DaggerConfig, progress: bool = True, executor: str = "loc
                ray_address: str | None = None) -> dict[str, Any]:
     """Run (or resume) one DAgger round; exports the LeRobot dataset and returns the summary
     (also written to ``rtv3_summary.json``). Scenes run in ``config.workers`` workers of the scene
-    pool (``executor``: local processes or Ray); this process alone writes the staging area."""
+    pool (``executor``: local processes or Ray); this process alone writes the staging area, and a
+    second process on the same folder stops at once (:class:`~rtv3_maniskill.records.FolderBusy`)."""
+    with claim_folder(config.output):
+        return _run_claimed(config, progress, executor, ray_address)
+
+
+def _run_claimed(config: DaggerConfig, progress: bool, executor: str, ray_address: str | None) -> dict[str, Any]:
     policy_config = json.loads((resolve_checkpoint(config.policy_path) / "config.json").read_text())
     num_points, max_grasps = int(policy_config["num_points"]), int(policy_config["max_grasps"])
     with StagingArea(config.output, settings=config.settings(num_points, max_grasps)) as staging:

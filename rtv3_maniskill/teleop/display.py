@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-MODE_COLORS = {"shared": (60, 200, 90), "autonomous": (80, 150, 255), "user_only": (230, 80, 70),
-               "scripted": (240, 200, 40), "none": (160, 160, 160)}
+MODE_COLORS = {"starting": (200, 200, 200), "shared": (60, 200, 90), "autonomous": (80, 150, 255),
+               "user_only": (230, 80, 70), "scripted": (240, 200, 40), "none": (160, 160, 160)}
 PANEL_WIDTH = 380
 KEY_HELP = ("move: w/s x  a/d y  q/e z (world axes)", "rotate: i/k  j/l  u/o", "f approach (Y)  g grasp (A)",
             "t lift (X)  r release (B)", "F12 screenshot  Esc quit")

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -21,6 +23,8 @@ from rtv3_maniskill import ENV_ID
 
 RENDER_NICENESS = 10
 """The render process yields the CPU to the control loop (``os.nice``)."""
+START_TIMEOUT_S = 120.0
+"""How long the first trial waits for the render process to start and send its first frame."""
 
 
 def _serve(connection: Any, make_kwargs: dict[str, Any]) -> None:
@@ -78,14 +82,38 @@ class RenderProcess:
         self._ready = False
         self._pending: Any = None
 
-    def set_scene(self, scene_seed: int) -> None:
-        """Load the scene of ``scene_seed`` (as the control loop's env did); waits only for a frame in flight."""
+    def set_scene(self, scene_seed: int, idle: Callable[[], Any] | None = None) -> None:
+        """Load the scene of ``scene_seed`` (as the control loop's env did); waits for the process to have
+        started (the first time, calling ``idle`` every 0.1 s meanwhile) and for a frame in flight."""
         if not self._ready:
-            if not self._connection.poll(120.0) or self._connection.recv()[0] != "ready":
+            if not self._wait(START_TIMEOUT_S, idle) or self._connection.recv()[0] != "ready":
                 raise RuntimeError("the teleop render process did not start")
             self._ready = True
         self._drain()
         self._connection.send(("scene", int(scene_seed)))
+
+    def first_frame(self, qpos: np.ndarray, object_poses: np.ndarray,
+                    idle: Callable[[], Any] | None = None) -> np.ndarray:
+        """Render this state of the newly set scene and wait for it (``idle`` every 0.1 s): the trial's first
+        frame ``(H, W, 3)`` uint8, shown before the trial's clock starts."""
+        self.show(qpos, object_poses)
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while time.monotonic() < deadline:
+            self._wait(deadline - time.monotonic(), idle)
+            frame = self.frame()
+            if frame is not None:
+                return frame
+        raise RuntimeError("the teleop render process sent no frame of the trial's scene")
+
+    def _wait(self, timeout: float, idle: Callable[[], Any] | None) -> bool:
+        """Whether a message came within ``timeout`` seconds, calling ``idle`` between 0.1 s polls."""
+        deadline = time.monotonic() + timeout
+        while not self._connection.poll(0.1):
+            if idle is not None:
+                idle()
+            if time.monotonic() >= deadline:
+                return False
+        return True
 
     def show(self, qpos: np.ndarray, object_poses: np.ndarray) -> None:
         """Render this state when the process is free: ``qpos (9,)``, ``object_poses (n, 7)`` (p, q wxyz)."""

@@ -61,6 +61,8 @@ class SessionConfig:
     init_qpos: np.ndarray | None = None
     """Start joint positions (7,) instead of the rest pose (e.g. IK of the pre-grasp)."""
     user_seed: int = 0
+    safety_filter: str | None = None
+    """``"neoss"``: the NEO collision damper between the method's twist and the arm (``SharedControlEnv``)."""
     screenshot: Path | None = None
     screenshot_step: int | None = None
     trial_config: TrialConfig = field(default_factory=TrialConfig)
@@ -149,7 +151,7 @@ class TeleopSession:
         if not config.headless and self._realtime:
             camera = render["human_render_camera_configs"]
             self.renderer = RenderProcess({**scene, "human_render_camera_configs": camera})
-        self.env = SharedControlEnv(rendered_context=True, **scene, **render)
+        self.env = SharedControlEnv(rendered_context=True, safety_filter=config.safety_filter, **scene, **render)
         self.env.method = make_method(config.method, controller_speed_limits(self.env.base), policy=policy,
                                       config=fusion)
         self.speed_limits = controller_speed_limits(self.env.base)
@@ -163,8 +165,9 @@ class TeleopSession:
         self.recorder = None
         if config.record is not None:
             self.recorder = SessionRecorder(config.record, num_points, max_grasps, resume=config.resume, settings=dict(
-                method=config.method, input=config.input, participant=config.participant, scene_seed=config.scene_seed,
-                trials=config.trials, timeout_s=config.trial_config.timeout_s, scene_type=config.scene_type,
+                method=self.method_label, input=config.input, participant=config.participant,
+                scene_seed=config.scene_seed, trials=config.trials, timeout_s=config.trial_config.timeout_s,
+                scene_type=config.scene_type,
                 **({"object_source": config.object_source} if config.object_source != "procedural" else {}),
                 **({"fusion": config.fusion} if config.fusion != "tuned" else {})))
         self.quit = False
@@ -195,6 +198,12 @@ class TeleopSession:
 
     def _interrupt(self, signum: int, frame: Any) -> None:
         self.interrupted = True
+
+    @property
+    def method_label(self) -> str:
+        """The method as ``sessions.csv`` and the study name it: ``rtv3``, or ``rtv3+neoss`` behind the damper
+        (as ``benchmark-shared`` labels its rows)."""
+        return self.config.method + (f"+{self.config.safety_filter}" if self.config.safety_filter else "")
 
     @property
     def _realtime(self) -> bool:
@@ -244,20 +253,26 @@ class TeleopSession:
         if self.recorder is not None:
             keys = ("point_cloud", "point_cloud_mask", "grasps", "grasps_mask")
             context = {k: extra[k][0].cpu().numpy() for k in keys}
-            self.recorder.start_trial(context, task, participant=cfg.participant, method=cfg.method,
+            self.recorder.start_trial(context, task, participant=cfg.participant, method=self.method_label,
                                       input=cfg.input, scene_seed=scene_seed, target_grasp_index=target_index,
                                       target_object=self.monitor.target_object)
         realtime = self._realtime
-        if self.renderer is not None:
-            self.renderer.set_scene(scene_seed)
-        panel = dict(method=cfg.method, input=cfg.input, trial=f"{trial + 1}/{cfg.trials}", task=task,
+        panel = dict(method=self.method_label, input=cfg.input, trial=f"{trial + 1}/{cfg.trials}", task=task,
                      timeout=cfg.trial_config.timeout_s, mode="none", phase="free", gripper="open")
+        overlay = _SceneOverlay(base) if self.display is not None else None
+        if self.display is not None:  # "starting" until the window shows the trial's first frame
+            self.display.draw(render_frame(env), dict(panel, mode="starting", time=0.0, contacts=0), overlay.draw({}))
         # Warm up before the clock starts: the first assisted step and the first frame cost the most.
         env.method.step(features.observation_from_env(obs), None)
         env.method.reset()
-        overlay = _SceneOverlay(base) if self.display is not None else None
+        if self.renderer is not None:  # the clock starts once the render process shows this scene
+            pump = self.display.events if self.display is not None else None
+            self.renderer.set_scene(scene_seed, idle=pump)
+            first = self.renderer.first_frame(*scene_state(base), idle=pump)
+            self.display.draw(first, dict(panel, time=0.0, contacts=0), overlay.draw({}))
+        elif self.display is not None:
+            self.display.draw(None, dict(panel, time=0.0, contacts=0), overlay.draw({}))
         if self.display is not None:
-            self.display.draw(render_frame(env), dict(panel, time=0.0, contacts=0), overlay.draw({}))
             self.display.events()  # keys pressed while the scene loaded do not count
         print(f"trial {trial + 1}: scene {scene_seed}, {task}: started", flush=True)
         outcome, info, step = None, {}, 0

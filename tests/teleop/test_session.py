@@ -222,3 +222,16 @@ def test_ctrl_c_ends_a_session_cleanly_and_keeps_its_trials(tmp_path):
     assert proc.returncode == 130, output[-2000:]
     assert "Traceback" not in output and "interrupted" in output
     assert LeRobotDataset(REPO_ID, root=folder).meta.total_episodes == len(pd.read_csv(sessions)) >= 1
+
+
+def test_a_session_behind_the_safety_filter_is_recorded_and_analysed_under_its_name(tmp_path):
+    """`teleop --safety-filter neoss`: the arm runs behind NeoSS; sessions.csv and the study name it rtv3+neoss."""
+    from rtv3_maniskill.cli import main
+
+    folder = tmp_path / "P01_rtv3_neoss"
+    assert main(["teleop", "--method", "rtv3", "--safety-filter", "neoss", "--input", "simulated:noisy", "--headless",
+                 "--timeout", "3", "--participant", "P01", "--record", str(folder)]) == 0
+    rows = pd.read_csv(folder / "sessions.csv")
+    assert list(rows["method"]) == ["rtv3+neoss"]
+    assert main(["study", "analyze", str(folder), "--output", str(tmp_path / "analysis")]) == 0
+    assert set(pd.read_csv(tmp_path / "analysis" / "trials.csv")["method"]) == {"rtv3+neoss"}
