@@ -37,9 +37,10 @@ if [[ "$have" != "$want" && ! ( -z "$extras" && "$have" == "${want}[dev]" ) ]]; 
   fi
   log "installing rtv3-maniskill${extras} and its pinned dependencies into .venv (first time: several minutes, ~5 GB of wheels, ~10 GB installed)"
   # pip's errors reach the terminal; its notes about index locations this machine's pip configuration names
-  # but lacks do not (they are the machine's, not the project's, and read like failures).
+  # but lacks do not, nor the build backend's Python warnings about editable installs (they read like failures).
   pip_quiet() {
-    .venv/bin/pip install --quiet "$@" 2>&1 | { grep -v "^WARNING: Location '.*' is ignored" || true; } >&2
+    PYTHONWARNINGS=ignore .venv/bin/pip install --quiet "$@" 2>&1 \
+      | { grep -v "^WARNING: Location '.*' is ignored" || true; } >&2
     return "${PIPESTATUS[0]}"
   }
   pip_quiet --upgrade "pip>=24"
