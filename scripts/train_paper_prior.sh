@@ -5,7 +5,7 @@
 #      32, ...; 31 is also the pilot's): the paper preset's packed layout with objects from the YCB-sized,
 #      procedural and pybullet sets (OBJECTS; the validation and test scenes hold only the 12 YCB objects), starts drawn
 #      around the ready pose as the authors do, free-space clearance CLEARANCE (chosen by
-#      scripts/paper_prior_pilot.sh); after each chunk the prior trains on every chunk so far through the
+#      the pilot in docs/RESULTS.md); after each chunk the prior trains on every chunk so far through the
 #      compact cache (chunk 1: from scratch, STEPS0 steps; then STEPS more from the previous stage);
 #   2. ROUNDS DAgger rounds (seed blocks 51, 52, ...), each from the stage before: that prior rolls out
 #      alone and under RT-V3 (the preset's fusion) with the noisy and single-DoF users, the planner

@@ -24,7 +24,7 @@ from rtv3_maniskill.cli.scene_args import (
     push_if_asked,
     resolve_scene_arguments,
 )
-from rtv3_maniskill.records import claim_folder
+from rtv3_maniskill.records import claim_folder, scene_seeds
 from rtv3_maniskill.robot.planner_config import DEFAULT_CLEARANCE, with_clearance
 
 
@@ -176,7 +176,6 @@ def _generate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from rtv3_maniskill.datagen.lerobot_export import StagedEpisodeError, StagingArea, export_lerobot_dataset
-    from rtv3_maniskill.records import scene_seeds
     from rtv3_maniskill.scene_pool import SceneWorkerError, run_scenes
 
     try:  # refuses a folder with attempts made under other settings (not one whose run failed before any)

@@ -265,10 +265,9 @@ class TeleopSession:
         # Warm up before the clock starts: the first assisted step and the first frame cost the most.
         env.method.step(features.observation_from_env(obs), None)
         env.method.reset()
-        if self.renderer is not None:  # the clock starts once the render process shows this scene
-            pump = self.display.events if self.display is not None else None
-            self.renderer.set_scene(scene_seed, idle=pump)
-            first = self.renderer.first_frame(*scene_state(base), idle=pump)
+        if self.renderer is not None:  # (only with a window) the clock starts once it shows this scene
+            self.renderer.set_scene(scene_seed, idle=self.display.events)
+            first = self.renderer.first_frame(*scene_state(base), idle=self.display.events)
             self.display.draw(first, dict(panel, time=0.0, contacts=0), overlay.draw({}))
         elif self.display is not None:
             self.display.draw(None, dict(panel, time=0.0, contacts=0), overlay.draw({}))
