@@ -67,7 +67,7 @@ stage() {  # NAME INIT(fresh|checkpoint) STEPS LR DATASETS... -> OUT/NAME/run/ch
   fi
   [[ -f $dir/planning/planning_summary.json ]] || $rtv3 evaluate planning --preset paper --seed 8 \
       --scenes "$EVAL_SCENES" --policy.path "$dir/run/checkpoints/last" --output "$dir/planning"
-  .venv/bin/python scripts/learning_curve.py "$OUT"
+  $rtv3 learning-curve "$OUT"
 }
 
 generated() {  # FOLDER SCENES: whether rtv3 generate has finished SCENES scenes there
@@ -102,7 +102,7 @@ for ((r = 1; r <= ROUNDS; r++)); do
   stage "dagger_$r" "$prior" "$STEPS" 3e-4 "${datasets[@]}"
   prior=$OUT/dagger_$r/run/checkpoints/last
 done
-best=$(.venv/bin/python scripts/learning_curve.py "$OUT" --best)
+best=$($rtv3 learning-curve "$OUT" --best)
 mkdir -p "$OUT/final"
 cp "$best/"{config.json,model.safetensors} "$OUT/final/"
 echo "paper prior: $OUT/final (from $best)"

@@ -1,11 +1,9 @@
-"""The paper prior campaign's learning curve: validation planning against trajectories seen.
+"""``rtv3 learning-curve OUT``: the paper-prior campaign's learning curve (validation planning against trajectories).
 
 Reads every stage folder of a ``scripts/train_paper_prior.sh`` output (``OUT/demos_K``, ``OUT/dagger_R``:
 ``cache/summary.json``, ``run/checkpoints/last/model.safetensors``, ``planning/planning_summary.json``) and
 writes ``OUT/curve.csv`` and ``OUT/curve.png``; with ``--best`` it prints the checkpoint folder of the stage
 with the highest validation SR (fewer collisions break a tie) instead.
-
-    python scripts/learning_curve.py outputs/paper_prior
 """
 
 from __future__ import annotations
@@ -70,11 +68,12 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("out", type=Path, help="the campaign's output folder (OUT)")
     parser.add_argument("--best", action="store_true", help="print the best stage's checkpoint folder")
-    args = parser.parse_args()
+
+
+def run(args: argparse.Namespace) -> int:
     if not args.out.is_dir():
         print(f"error: no campaign output folder {args.out}", file=sys.stderr)
         return 1
@@ -94,7 +93,3 @@ def main() -> int:
         print(f"{r['stage']:>9}: {r['trajectories']:>6} trajectories, step {r['model_step']:>6}: "
               f"SR {100 * r['SR']:.1f} CR {100 * r['CR']:.1f} TOR {100 * r['TOR']:.1f} ({r['trials']} trials)")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
