@@ -7,6 +7,7 @@ policy. All arrays float32 unless noted. World frame = the ManiSkill scene frame
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from rtv3_maniskill import se3
@@ -52,7 +53,20 @@ GRIPPER_CLOSED = -1.0
 REPO_ID = "local/rtv3_grasp_clutter"
 """Repository id of the LeRobot datasets this project writes (``--push-to-hub`` gives a real one)."""
 ENV_STATE = "observation.environment_state"
-"""LeRobot's packed environment-state key: the point cloud and grasps in one vector (:func:`pack_context`)."""
+"""LeRobot's environment-state key. In a dataset (``rtv3 generate``, ``rtv3 dagger``, ``teleop --record``) it
+holds the scene summary ``(scene_summary_dim(M),)`` of :func:`scene_summary`, which stock LeRobot policies
+(``--policy.type=diffusion``, ``act``) read; in the ``lerobot-eval`` env it holds either that summary or, for
+RT-V3, the whole packed context (:func:`pack_context`), as ``--env.environment_state`` says."""
+SUMMARY_GRASP_CHANNELS = ("x", "y", "z", "ax", "ay", "az", "cx", "cy", "cz", "width", "score", "valid")
+"""Per grasp candidate in :func:`scene_summary`: TCP position (world, m), approach axis (tool z, world), closing
+axis (tool y, world), gripper width (m), score, and 1.0 for a real candidate (0.0: padding, all zeros). The two
+axes stand for the orientation without a quaternion's sign ambiguity."""
+HEIGHT_MAP_CELLS = 8
+"""The scene summary's height map has ``HEIGHT_MAP_CELLS x HEIGHT_MAP_CELLS`` cells."""
+HEIGHT_MAP_CENTER = (-0.05, 0.0)
+"""m, world xy: centre of the height map, the centre of the 30 cm workspace cube the point cloud is cropped to."""
+HEIGHT_MAP_HALF_SIZE = 0.15
+"""m: half the side of the height map (the workspace cube's half size): cells of 3.75 cm."""
 TARGET_GRASP = "target_grasp_index"
 """``(1,)`` int64 index into the grasp set of the episode's target (privileged)."""
 
@@ -133,6 +147,60 @@ ARM_QVEL = slice(20, 27)
 def environment_state_dim(num_points: int, max_grasps: int) -> int:
     """Length of the flat ``observation.environment_state`` vector (see :func:`pack_context`)."""
     return num_points * 7 + max_grasps * (GRASP_DIM + 1)
+
+
+def scene_summary_dim(max_grasps: int) -> int:
+    """Length of the scene summary :func:`scene_summary`: ``max_grasps * 12 + HEIGHT_MAP_CELLS ** 2``."""
+    return max_grasps * len(SUMMARY_GRASP_CHANNELS) + HEIGHT_MAP_CELLS**2
+
+
+def scene_summary_names(max_grasps: int) -> list[str]:
+    """Channel names of :func:`scene_summary` (``grasp07_ax``, ..., ``height_r3_c5``), as a dataset's ``names``."""
+    grasps = [f"grasp{i:02d}_{c}" for i in range(max_grasps) for c in SUMMARY_GRASP_CHANNELS]
+    cells = range(HEIGHT_MAP_CELLS)
+    return grasps + [f"height_r{r}_c{c}" for r in cells for c in cells]
+
+
+def _float_tensor(value) -> torch.Tensor:
+    """A float32 tensor of ``value`` (numpy arrays, read-only ones included, are copied)."""
+    if isinstance(value, torch.Tensor):
+        return value.float()
+    return torch.from_numpy(np.array(value, dtype=np.float32))
+
+
+def scene_summary(point_cloud, point_cloud_mask, grasps, grasps_mask) -> torch.Tensor:
+    """The static scene as one fixed-size vector ``(..., scene_summary_dim(M))`` float32, for stock policies.
+
+    Args:
+        point_cloud: ``(..., N, 6)`` or flat ``(..., N * 6)``, world xyz (m) + rgb; its mask ``(..., N)``.
+        grasps: ``(..., M, 9)`` or flat ``(..., M * 9)`` (:data:`GRASPS`); its mask ``(..., M)``.
+
+    Layout: M grasp rows of :data:`SUMMARY_GRASP_CHANNELS` (world frame, padding rows zero), then the height
+    map, row-major ``(HEIGHT_MAP_CELLS, HEIGHT_MAP_CELLS)``, rows along world x (away from the robot), columns
+    along world y: the highest point (m above the table top) of the cloud in each cell, 0 where the cell holds
+    none. numpy or torch in; a torch tensor out.
+    """
+    pc = unflatten(POINT_CLOUD, _float_tensor(point_cloud))
+    pc_mask = _float_tensor(point_cloud_mask) > 0.5
+    g = unflatten(GRASPS, _float_tensor(grasps))
+    g_mask = _float_tensor(grasps_mask) > 0.5
+    if pc_mask.shape != pc.shape[:-1] or g_mask.shape != g.shape[:-1]:
+        raise ValueError(f"scene_summary: masks {tuple(pc_mask.shape)}, {tuple(g_mask.shape)} do not fit the "
+                         f"point cloud {tuple(pc.shape)} and grasps {tuple(g.shape)}")
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    rot = se3.quat_to_matrix(torch.where(g_mask[..., None], g[..., 3:7], identity))
+    rows = torch.cat([g[..., :3], rot[..., :, 2], rot[..., :, 1], g[..., 7:9], torch.ones_like(g[..., :1])], -1)
+    rows = rows * g_mask[..., None]
+
+    cells = HEIGHT_MAP_CELLS
+    centre = torch.tensor(HEIGHT_MAP_CENTER)
+    ij = torch.floor((pc[..., :2] - centre + HEIGHT_MAP_HALF_SIZE) / (2 * HEIGHT_MAP_HALF_SIZE) * cells).long()
+    inside = pc_mask & (ij >= 0).all(-1) & (ij < cells).all(-1)
+    index = (ij[..., 0] * cells + ij[..., 1]).clamp(0, cells * cells - 1)
+    height = torch.where(inside, pc[..., 2].clamp_min(0.0), torch.zeros(()))
+    lead = pc.shape[:-2]
+    height_map = torch.zeros(*lead, cells * cells).scatter_reduce(-1, index, height, "amax", include_self=True)
+    return torch.cat([rows.reshape(*lead, -1), height_map], -1)
 
 
 CONTEXT_MODES = ("target", "all")

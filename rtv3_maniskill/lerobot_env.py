@@ -2,14 +2,17 @@
 
 ``lerobot-eval`` keeps only a few observation keys of a gym env (``agent_pos`` ->
 ``observation.state``, ``environment_state`` -> ``observation.environment_state``, ...), so
-this view hands over the 27-D state as ``agent_pos`` and the static scene context (point
-cloud + grasp set, ``features.pack_context``) as ``environment_state``. The action is the
+this view hands over the 27-D state as ``agent_pos`` and the static scene as ``environment_state``:
+by default the whole packed context (point cloud + grasp set, ``features.pack_context``), which RT-V3
+reads; with ``environment_state="summary"`` the fixed-size scene summary the datasets store
+(``features.scene_summary``), which stock LeRobot policies trained on them read. The action is the
 6-D TCP body twist (the gripper stays open); ``info["is_success"]`` is the task's success:
 reaching the episode's target pre-grasp. So by default (``context="target"``, the planning
 benchmark's protocol) the policy is shown only that target among the candidates; with
 ``context="all"`` it sees every candidate and cannot know which one the success counts.
 
     lerobot-eval --policy.path=CKPT --env.type=rtv3_clutter --eval.n_episodes=10 --eval.batch_size=1
+    lerobot-eval --policy.path=DIFFUSION_CKPT --env.type=rtv3_clutter --env.environment_state=summary ...
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ from lerobot.envs.configs import EnvConfig
 from rtv3_maniskill import ENV_ID, features  # the package registers GraspClutter-v1 with gymnasium
 
 GYM_ID = "rtv3/GraspClutterLeRobot-v1"
+ENVIRONMENT_STATES = ("packed", "summary")
+"""What ``environment_state`` holds: the packed context (RT-V3) or the datasets' scene summary (stock policies)."""
 
 
 class GraspClutterLeRobotEnv(gym.Env):
@@ -33,10 +38,12 @@ class GraspClutterLeRobotEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": features.FPS}
 
     def __init__(self, render_mode: str | None = "rgb_array", max_episode_steps: int = 150, context: str = "target",
-                 **task_kwargs):
+                 environment_state: str = "packed", **task_kwargs):
         if context not in features.CONTEXT_MODES:
             raise ValueError(f"unknown context {context!r}; expected one of {features.CONTEXT_MODES}")
-        self.context = context
+        if environment_state not in ENVIRONMENT_STATES:
+            raise ValueError(f"unknown environment_state {environment_state!r}; expected one of {ENVIRONMENT_STATES}")
+        self.context, self.environment_state = context, environment_state
 
         self.render_mode = render_mode
         self._env = gym.make(
@@ -50,7 +57,7 @@ class GraspClutterLeRobotEnv(gym.Env):
         base = self._env.unwrapped
         self.num_points, self.max_grasps = base.num_points, base.max_grasps
         self._max_episode_steps = max_episode_steps
-        context_dim = features.environment_state_dim(self.num_points, self.max_grasps)
+        context_dim = environment_state_dim(environment_state, self.num_points, self.max_grasps)
         self.observation_space = gym.spaces.Dict(
             {
                 "agent_pos": gym.spaces.Box(-np.inf, np.inf, (features.STATE_DIM,), np.float32),
@@ -64,9 +71,10 @@ class GraspClutterLeRobotEnv(gym.Env):
         inputs = features.observation_from_env(obs)
         target = int(self._env.unwrapped.target_grasp_index[0])
         grasps_mask = features.context_mask(inputs[features.GRASPS_MASK], target, self.context)
-        packed = features.pack_context(inputs[features.POINT_CLOUD], inputs[features.POINT_CLOUD_MASK],
-                                       inputs[features.GRASPS], grasps_mask)
-        return {"agent_pos": inputs[features.STATE][0].cpu().numpy(), "environment_state": packed[0].cpu().numpy()}
+        scene = features.pack_context if self.environment_state == "packed" else features.scene_summary
+        state = scene(inputs[features.POINT_CLOUD], inputs[features.POINT_CLOUD_MASK], inputs[features.GRASPS],
+                      grasps_mask)
+        return {"agent_pos": inputs[features.STATE][0].cpu().numpy(), "environment_state": state[0].cpu().numpy()}
 
     @staticmethod
     def _info(info: dict) -> dict:
@@ -98,6 +106,13 @@ class GraspClutterLeRobotEnv(gym.Env):
         self._env.close()
 
 
+def environment_state_dim(environment_state: str, num_points: int, max_grasps: int) -> int:
+    """Length of ``environment_state`` for :data:`ENVIRONMENT_STATES` ``environment_state``."""
+    if environment_state == "packed":
+        return features.environment_state_dim(num_points, max_grasps)
+    return features.scene_summary_dim(max_grasps)
+
+
 if GYM_ID not in gym.registry:
     gym.register(id=GYM_ID, entry_point=GraspClutterLeRobotEnv, max_episode_steps=150)
 
@@ -118,6 +133,9 @@ class RTV3ClutterEnvConfig(EnvConfig):
     context: str = "target"
     """Grasp candidates the policy sees: ``"target"`` (the episode's target, whose pre-grasp the success
     counts) or ``"all"``."""
+    environment_state: str = "packed"
+    """``"packed"``: the whole point cloud and grasp set (RT-V3); ``"summary"``: the datasets' scene summary
+    (``features.scene_summary``), for policies trained with ``--policy.type=diffusion`` or ``act``."""
     features: dict[str, PolicyFeature] = field(default_factory=dict)
     features_map: dict[str, str] = field(
         default_factory=lambda: {
@@ -130,11 +148,15 @@ class RTV3ClutterEnvConfig(EnvConfig):
     def __post_init__(self):
         if self.context not in features.CONTEXT_MODES:
             raise ValueError(f"--env.context {self.context!r}: expected one of {features.CONTEXT_MODES}")
+        if self.environment_state not in ENVIRONMENT_STATES:
+            raise ValueError(f"--env.environment_state {self.environment_state!r}: expected one of "
+                             f"{ENVIRONMENT_STATES}")
         self.features = {
             features.ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(6,)),
             "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(features.STATE_DIM,)),
             "environment_state": PolicyFeature(
-                type=FeatureType.ENV, shape=(features.environment_state_dim(self.num_points, self.max_grasps),)
+                type=FeatureType.ENV,
+                shape=(environment_state_dim(self.environment_state, self.num_points, self.max_grasps),),
             ),
         }
 
@@ -155,4 +177,5 @@ class RTV3ClutterEnvConfig(EnvConfig):
             num_points=self.num_points,
             max_grasps=self.max_grasps,
             context=self.context,
+            environment_state=self.environment_state,
         )

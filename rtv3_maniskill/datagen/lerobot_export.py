@@ -65,11 +65,27 @@ def dataset_features(num_points: int, max_grasps: int) -> dict:
         features.GRASPS: {"dtype": "float32", "shape": flat(features.GRASPS, max_grasps),
                           "names": features.flat_names(features.GRASPS, max_grasps)},
         features.GRASPS_MASK: {"dtype": "float32", "shape": (max_grasps,), "names": ["grasp"]},
+        features.ENV_STATE: {"dtype": "float32", "shape": (features.scene_summary_dim(max_grasps),),
+                             "names": features.scene_summary_names(max_grasps)},
         features.ACTION: {"dtype": "float32", "shape": (6,), "names": ["vx", "vy", "vz", "wx", "wy", "wz"]},
         features.TARGET_GRASP: {"dtype": "int64", "shape": (1,), "names": None},
         "scene_seed": {"dtype": "int64", "shape": (1,), "names": None},
         "target_object": {"dtype": "int64", "shape": (1,), "names": None},
         "pregrasp_reached": {"dtype": "bool", "shape": (1,), "names": None},
+    }
+
+
+def context_frame(point_cloud: np.ndarray, point_cloud_mask: np.ndarray, grasps: np.ndarray,
+                  grasps_mask: np.ndarray) -> dict[str, np.ndarray]:
+    """A frame's scene features as the dataset stores them: the point cloud ``(N, 6)`` and grasps ``(M, 9)``
+    flat, their masks, and the derived scene summary ``observation.environment_state`` (``features.scene_summary``)."""
+    summary = features.scene_summary(point_cloud, point_cloud_mask, grasps, grasps_mask).numpy()
+    return {
+        features.POINT_CLOUD: np.asarray(point_cloud, dtype=np.float32).reshape(-1),
+        features.POINT_CLOUD_MASK: np.asarray(point_cloud_mask, dtype=np.float32),
+        features.GRASPS: np.asarray(grasps, dtype=np.float32).reshape(-1),
+        features.GRASPS_MASK: np.asarray(grasps_mask, dtype=np.float32),
+        features.ENV_STATE: summary,
     }
 
 
@@ -321,15 +337,13 @@ def _add_episodes(dataset, staging: StagingArea, files: list[Path], end_at: str,
             state, action = end_at_pregrasp(ep.state, ep.action, ep.pregrasp_step)
             ep = replace(ep, state=state, action=action)
         history = state_histories(ep.state, prefix=ep.history_prefix)
+        scene = context_frame(ep.point_cloud, ep.point_cloud_mask, ep.grasps, ep.grasps_mask)
         for t in range(len(ep.state)):
             dataset.add_frame(
                 {
                     features.STATE: ep.state[t],
                     features.STATE_HISTORY: history[t].reshape(-1),
-                    features.POINT_CLOUD: ep.point_cloud.reshape(-1),
-                    features.POINT_CLOUD_MASK: ep.point_cloud_mask,
-                    features.GRASPS: ep.grasps.reshape(-1),
-                    features.GRASPS_MASK: ep.grasps_mask,
+                    **scene,
                     features.ACTION: ep.action[t],
                     features.TARGET_GRASP: np.array([ep.target_grasp_index], dtype=np.int64),
                     "scene_seed": np.array([ep.scene_seed], dtype=np.int64),

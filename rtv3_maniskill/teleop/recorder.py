@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from rtv3_maniskill import features
-from rtv3_maniskill.datagen.lerobot_export import dataset_features, state_histories
+from rtv3_maniskill.datagen.lerobot_export import context_frame, dataset_features, state_histories
 from rtv3_maniskill.features import REPO_ID
 from rtv3_maniskill.records import RecordStore
 
@@ -162,14 +162,12 @@ class SessionRecorder:
         history = state_histories(states)
         ctx, meta = trial["context"], trial["meta"]
         code = np.array([OUTCOMES.index(outcome)], dtype=np.int64)
+        scene = context_frame(ctx["point_cloud"], ctx["point_cloud_mask"], ctx["grasps"], ctx["grasps_mask"])
         for t, f in enumerate(frames):
             self.dataset.add_frame({
                 features.STATE: f["state"],
                 features.STATE_HISTORY: history[t].reshape(-1),
-                features.POINT_CLOUD: ctx["point_cloud"].reshape(-1),
-                features.POINT_CLOUD_MASK: ctx["point_cloud_mask"],
-                features.GRASPS: ctx["grasps"].reshape(-1),
-                features.GRASPS_MASK: ctx["grasps_mask"],
+                **scene,
                 features.ACTION: actions[t],
                 features.TARGET_GRASP: np.array([meta.get("target_grasp_index", -1)], dtype=np.int64),
                 "scene_seed": np.array([meta.get("scene_seed", -1)], dtype=np.int64),
@@ -221,6 +219,10 @@ class SessionRecorder:
             if recorded.get(key) != settings.get(key):
                 raise ValueError(f"{self.root} was recorded with {key}={recorded.get(key)!r}, not "
                                  f"{settings.get(key)!r}: resume it with the same options")
+        stored = json.loads((self.root / "meta" / "info.json").read_text())["features"]
+        if features.ENV_STATE not in stored:
+            raise ValueError(f"{self.root} was recorded before sessions stored '{features.ENV_STATE}': "
+                             "record a new session (`rtv3 merge` converts the old one for training)")
         if not (self.root / "meta" / "episodes").is_dir() and (self.root / SESSIONS_CSV).is_file():
             if RecordStore.read(self.root / SESSIONS_CSV, SESSION_FIELDS):
                 raise ValueError(f"{self.root}: sessions.csv lists trials but the dataset holds no episode")

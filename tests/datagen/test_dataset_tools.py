@@ -155,3 +155,23 @@ def test_rtv3_merge_refuses_bad_folders_with_one_error_line(generated, tmp_path,
         main(["merge", *map(str, sources), "--output", str(output)])
     assert exit_info.value.code == message.format(tmp=tmp_path)
     assert not (tmp_path / "merged").exists()
+
+
+@pytest.mark.sim
+def test_rtv3_merge_adds_the_scene_summary_to_a_dataset_written_without_it(generated, tmp_path):
+    """Datasets from before the scene summary keep working: `rtv3 merge` derives
+    observation.environment_state from their point clouds and grasps, with its statistics."""
+    from lerobot.datasets.dataset_tools import remove_feature
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    old = tmp_path / "old"
+    remove_feature(LeRobotDataset(REPO_ID, root=generated), features.ENV_STATE, output_dir=old, repo_id=REPO_ID)
+    assert features.ENV_STATE not in LeRobotDataset(REPO_ID, root=old).meta.features
+    assert main(["merge", str(old), "--output", str(tmp_path / "new")]) == 0
+    new, original = LeRobotDataset(REPO_ID, root=tmp_path / "new"), LeRobotDataset(REPO_ID, root=generated)
+    assert new.num_frames == original.num_frames
+    for row in (0, len(new) - 1):
+        assert torch.allclose(new[row][features.ENV_STATE], original[row][features.ENV_STATE], atol=1e-6)
+    stats = new.meta.stats[features.ENV_STATE]
+    assert stats["max"].shape == (features.scene_summary_dim(16),)
+    assert not (tmp_path / ".new.with-summary").exists()

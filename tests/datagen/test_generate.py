@@ -355,3 +355,31 @@ def test_push_to_hub_uploads_the_dataset_with_a_card_and_fails_clearly_offline(t
     monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)
     with pytest.raises(HubPushError, match="could not push .* the dataset is kept there"):
         push_dataset(tiny_dataset, "someone/grasps", "Motion-planner demonstrations", command)
+
+
+STOCK_POLICY_FLAGS = {
+    "diffusion": ["--policy.down_dims=[32,64]", "--policy.horizon=8", "--policy.n_action_steps=4"],
+    "act": ["--policy.dim_model=32", "--policy.dim_feedforward=64", "--policy.n_encoder_layers=1",
+            "--policy.n_decoder_layers=1", "--policy.chunk_size=8", "--policy.n_action_steps=8"],
+}
+
+
+@pytest.mark.sim
+@pytest.mark.parametrize("policy_type", sorted(STOCK_POLICY_FLAGS))
+def test_stock_lerobot_policies_train_on_generated_dataset(tiny_dataset, tmp_path, policy_type):
+    """LeRobot's own diffusion and ACT policies train on `rtv3 generate` output: the dataset's
+    observation.environment_state (the scene summary) is the input they need beside the state."""
+    info = json.loads((tiny_dataset / "meta" / "info.json").read_text())
+    assert info["features"][features.ENV_STATE]["shape"] == [features.scene_summary_dim(16)]
+    lerobot_train = Path(sys.executable).parent / "lerobot-train"
+    out = tmp_path / "train"
+    cmd = [
+        str(lerobot_train), f"--dataset.repo_id={REPO_ID}", f"--dataset.root={tiny_dataset}",
+        f"--policy.type={policy_type}", "--policy.push_to_hub=false", "--policy.device=cpu", "--steps=2",
+        "--batch_size=2", "--num_workers=0", "--save_freq=2", f"--output_dir={out}", "--wandb.enable=false",
+        *STOCK_POLICY_FLAGS[policy_type],
+    ]
+    result = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, OMP_NUM_THREADS="1"), timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    config = json.loads((out / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
+    assert config["input_features"][features.ENV_STATE]["type"] == "ENV"
