@@ -136,6 +136,15 @@ class BenchmarkConfig:
         help="put the NEO collision damper in front of every method (the paper's 'w. NeoSS' rows; results are "
              "named METHOD+neoss)")
 
+    copilot_path: Path | None = _option(
+        None, help="the copilot method's diffusion policy (a pretrained_model folder of rtv3 train-copilot; "
+                   "None: the shipped rtv3_maniskill/checkpoints/copilot_diffusion)")
+    copilot_gamma: float | None = _option(
+        None, help="the copilot's noising fraction in [0, 1] (0: the user's twist, 1: the copilot alone; None: its "
+                   "default, chosen on the validation block)")
+    copilot_steps: int | None = _option(
+        None, help="the copilot's DDIM steps over the whole schedule (None: the checkpoint's)")
+
     def __post_init__(self) -> None:
         # Lazy: they load torch, and the CLI's parser imports this module.
         from rtv3_maniskill.shared_control.methods import method_spec
@@ -165,6 +174,14 @@ class BenchmarkConfig:
         if self.safety_filter is not None and self.safety_filter not in _known_safety_filters():
             raise BenchmarkError(f"unknown safety filter {self.safety_filter!r}; known: "
                                  f"{', '.join(_known_safety_filters())}")
+        if "copilot" in self.methods:
+            try:
+                copilot = self.copilot_settings()
+            except ValueError as err:
+                raise BenchmarkError(str(err)) from None
+            if not (Path(copilot.path) / "model.safetensors").is_file():
+                raise BenchmarkError(f"no copilot at {copilot.path} (model.safetensors): train one with "
+                                     "`rtv3 train-copilot` and pass its pretrained_model folder as --copilot-path")
         self.shared_control = dict(self.shared_control)
         for key in _SPEED_LIMIT_FIELDS:
             if key in self.shared_control:
@@ -173,6 +190,15 @@ class BenchmarkConfig:
             self.shared_control_config(0.3, 1.2)
         except (TypeError, ValueError) as err:
             raise BenchmarkError(f"bad shared_control settings {self.shared_control}: {err}") from None
+
+    def copilot_settings(self):
+        """The copilot method's :class:`~rtv3_maniskill.shared_control.copilot.CopilotSettings` (None fields: its defaults)."""
+        # Lazy: it loads torch and LeRobot, and the CLI's parser imports this module.
+        from rtv3_maniskill.shared_control.copilot import CopilotSettings
+
+        given = dict(path=self.copilot_path and str(self.copilot_path), gamma=self.copilot_gamma,
+                     reverse_steps=self.copilot_steps)
+        return CopilotSettings(**{k: v for k, v in given.items() if v is not None})
 
     def shared_control_config(self, max_linear_speed: float, max_angular_speed: float):
         """The RT-V3 controller's settings: the fusion preset, these overrides and the env's speed limits."""
@@ -216,8 +242,13 @@ class BenchmarkConfig:
             shared_control = dataclasses.asdict(self.shared_control_config(0.3, 1.2))
             for key in _SPEED_LIMIT_FIELDS:
                 shared_control.pop(key)
+        copilot = None
+        if "copilot" in self.methods:
+            settings = self.copilot_settings()
+            copilot = dict(path=str(Path(settings.path).resolve()), gamma=settings.gamma,
+                           reverse_steps=settings.reverse_steps, weights_sha256=weights_digest(Path(settings.path)))
         return dict(
-            seed=self.seed, max_steps=self.max_steps, **_FIXED_SETTINGS, scene_type=self.scene_type,
+            seed=self.seed, max_steps=self.max_steps, **({"copilot": copilot} if copilot else {}), **_FIXED_SETTINGS, scene_type=self.scene_type,
             goals_per_scene=self.goals_per_scene, protocol=PROTOCOL, safety_filter=self.safety_filter,
             policy_path=str(policy_path.resolve()) if policy_path is not None else None,
             policy_weights_sha256=weights_digest(policy_path) if policy_path is not None else None,

@@ -89,7 +89,9 @@ class SceneRunner:
         limits = controller_speed_limits(self.env.base)
         shared_config = config.shared_control_config(*limits)
         self.specs = {m: METHODS[m] for m in config.methods}
-        self.methods = {m: make_method(m, limits, policy=policy, config=shared_config, plan_prior=PlanOraclePrior)
+        copilot = config.copilot_settings() if "copilot" in config.methods else None
+        self.methods = {m: make_method(m, limits, policy=policy, config=shared_config, plan_prior=PlanOraclePrior,
+                                       copilot=copilot)
                         for m in config.methods}
 
     def run_scene(self, scene_seed: int, checks: dict[int, str], done: set[tuple[str, ...]],

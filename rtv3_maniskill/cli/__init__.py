@@ -27,6 +27,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "study": ("study", "user study: plan a counterbalanced schedule, analyze recorded sessions (stats + box plots)"),
     "compact-cache": ("compact_cache",
                       "train the prior from a compact cache of a dataset (build / train, e.g. on a GPU / finish)"),
+    "train-copilot": ("train_copilot",
+                      "train the diffusion copilot (LeRobot's DiffusionPolicy) on demonstrations with lerobot-train"),
     "learning-curve": ("learning_curve",
                        "the paper-prior campaign's learning curve: validation planning against trajectories seen"),
     "benchmark-shared": ("benchmark_shared",

@@ -20,13 +20,15 @@ import logging
 import shutil
 from pathlib import Path
 
+import datasets
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-from lerobot.datasets.compute_stats import get_feature_stats
-from lerobot.datasets.dataset_tools import add_features, merge_datasets
+from lerobot.datasets.compute_stats import DEFAULT_QUANTILES, get_feature_stats
+from lerobot.datasets.dataset_tools import merge_datasets
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from lerobot.datasets.utils import write_stats
+from lerobot.datasets.utils import get_hf_features_from_features, load_stats, write_info, write_stats
+from tqdm import tqdm
 
 from rtv3_maniskill import features
 from rtv3_maniskill.datagen.lerobot_export import dataset_features
@@ -64,40 +66,88 @@ def has_scene_summary(root: str | Path) -> bool:
     return features.ENV_STATE in info["features"]
 
 
+_CONTEXT = (features.POINT_CLOUD, features.POINT_CLOUD_MASK, features.GRASPS, features.GRASPS_MASK)
+
+
+def _with_scene_summary(table: pa.Table, schema: pa.Schema, rows: int = 2048) -> pa.Table:
+    """``table`` (one data file) with the scene-summary column, ``rows`` frames at a time, cast to ``schema``."""
+    parts = []
+    for batch in table.select(list(_CONTEXT)).to_batches(max_chunksize=rows):
+        columns = [np.stack(batch.column(k).to_numpy(zero_copy_only=False)) for k in _CONTEXT]
+        summary = features.scene_summary(*columns).numpy()
+        parts.append(pa.FixedSizeListArray.from_arrays(pa.array(summary.reshape(-1)), summary.shape[1]))
+    column = pa.chunked_array(parts, type=schema.field(features.ENV_STATE).type)
+    return table.append_column(features.ENV_STATE, column).select(schema.names).cast(schema)
+
+
 def add_scene_summary(source: str | Path, output: str | Path) -> LeRobotDataset:
     """A copy of the dataset ``source`` in ``output`` with ``observation.environment_state``, the scene summary
-    (``features.scene_summary``) of each frame's point cloud and grasps, and its statistics in ``meta/stats.json``.
+    (``features.scene_summary``) of each frame's point cloud and grasps, and its statistics (``meta/stats.json``
+    and each episode's, for LeRobot's merge).
 
-    Raises ``FileExistsError`` when ``output`` exists and ``ValueError`` when ``source`` already has the feature;
-    a half-written copy is removed.
+    One data file at a time in Arrow (a dataset's point clouds need not fit in memory). Raises
+    ``FileExistsError`` when ``output`` exists and ``ValueError`` when ``source`` already has the feature; a
+    half-written copy is removed.
     """
     source, output = Path(source), Path(output)
     if output.exists():
         raise FileExistsError(f"{output} exists; remove it or choose another folder")
     if has_scene_summary(source):
         raise ValueError(f"{source} already has '{features.ENV_STATE}'")
-    dataset = LeRobotDataset(REPO_ID, root=source)
-    max_grasps = features.rows_of(features.GRASPS, dataset.meta.features[features.GRASPS]["shape"])
+    info = json.loads((source / "meta" / "info.json").read_text())
+    max_grasps = features.rows_of(features.GRASPS, info["features"][features.GRASPS]["shape"])
     spec = dataset_features(1, max_grasps)[features.ENV_STATE]
-    summaries: list[np.ndarray] = []
-
-    def summary(row: dict, episode: int, frame: int) -> np.ndarray:
-        value = features.scene_summary(row[features.POINT_CLOUD], row[features.POINT_CLOUD_MASK],
-                                       row[features.GRASPS], row[features.GRASPS_MASK]).numpy()
-        summaries.append(value)
-        return value
-
+    info["features"][features.ENV_STATE] = {**spec, "shape": list(spec["shape"])}
+    # shapes as tuples, as LeRobot's load_info gives them (a (1,) feature is a scalar column)
+    schema = get_hf_features_from_features(
+        {k: {**v, "shape": tuple(v["shape"])} for k, v in info["features"].items()}).arrow_schema
     try:
-        add_features(dataset, {features.ENV_STATE: (summary, spec)}, output_dir=output, repo_id=REPO_ID)
-        stats = json.loads((output / "meta" / "stats.json").read_text())
-        stats = {k: {s: np.asarray(v) for s, v in d.items()} for k, d in stats.items()}
-        stats[features.ENV_STATE] = get_feature_stats(np.stack(summaries), axis=0, keepdims=False)
+        shutil.copytree(source, output, ignore=shutil.ignore_patterns("*.parquet", "*.lock"))
+        for path in sorted((source / "meta").rglob("*.parquet")):
+            shutil.copy2(path, output / path.relative_to(source))
+        summaries, episode_of = [], []
+        for path in tqdm(sorted((source / "data").glob("*/*.parquet")), desc="scene summary", unit="file"):
+            table = _with_scene_summary(pq.read_table(path), schema)
+            pq.write_table(table, output / path.relative_to(source))
+            summaries.append(np.stack(table.column(features.ENV_STATE).to_numpy(zero_copy_only=False)))
+            episode_of.append(table.column("episode_index").to_numpy())
+            del table
+        summaries, episode_of = np.concatenate(summaries), np.concatenate(episode_of)
+        write_info(info, output)
+        stats = {k: {s: np.asarray(v) for s, v in d.items()} for k, d in load_stats(source).items()}
+        stats[features.ENV_STATE] = get_feature_stats(summaries, axis=0, keepdims=False)
         write_stats(stats, output)
+        _add_episode_stats(output, summaries, episode_of)
     except BaseException:
         shutil.rmtree(output, ignore_errors=True)
         raise
     logging.info("%s: added '%s' to %d frames", output, features.ENV_STATE, len(summaries))
     return LeRobotDataset(REPO_ID, root=output)
+
+
+def _stats(values: np.ndarray) -> dict[str, np.ndarray]:
+    """LeRobot's per-feature statistics of ``values (frames, D)``: min, max, mean, std, count and its quantiles
+    (exact here; LeRobot's running estimate is slow for a long vector and exact for an episode's few frames)."""
+    out = dict(min=values.min(0), max=values.max(0), mean=values.mean(0), std=values.std(0),
+               count=np.array([len(values)]))
+    for q in DEFAULT_QUANTILES:
+        out[f"q{int(round(q * 100)):02d}"] = np.quantile(values, q, axis=0)
+    return out
+
+
+def _add_episode_stats(root: Path, summaries: np.ndarray, episode_of: np.ndarray) -> None:
+    """Each episode-metadata row gains the scene summary's ``stats/<key>/<stat>`` columns, as LeRobot writes them."""
+    for path in sorted((root / "meta" / "episodes").glob("chunk-*/file-*.parquet")):
+        table = pq.read_table(path)
+        per_episode = [_stats(summaries[episode_of == e]) for e in table.column("episode_index").to_pylist()]
+        for stat in per_episode[0]:
+            values = [np.asarray(s[stat]).reshape(-1).tolist() for s in per_episode]
+            name = f"stats/{features.ENV_STATE}/{stat}"
+            if name in table.column_names:  # left behind by a removal of the feature (lerobot remove_feature)
+                table = table.drop_columns([name])
+            table = table.append_column(name, pa.array(values))
+        # through Hugging Face datasets, as LeRobot writes it (its schema note must list the new columns)
+        datasets.Dataset(table.replace_schema_metadata(None)).to_parquet(path)
 
 
 def merge(sources: list[Path], output: Path):

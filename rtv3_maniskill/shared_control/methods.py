@@ -1,7 +1,8 @@
 """The assistance methods by name: how each is built, what it needs, and what it is told before a trial.
 
 :data:`METHODS` is the one list of the method names (``rtv3 benchmark-shared --methods``, ``rtv3
-demo``, ``rtv3 teleop``, DAgger drivers): Direct teleoperation, Hindsight Optimization, RT-V3, and
+demo``, ``rtv3 teleop``, DAgger drivers): Direct teleoperation, Hindsight Optimization, RT-V3, the
+diffusion copilot (:mod:`~rtv3_maniskill.shared_control.copilot`), and
 RT-V3's controller around priors that know the scene, the ceilings of what a learned prior can give
 the fusion (:mod:`~rtv3_maniskill.shared_control.oracle_prior`). Each entry, a :class:`MethodSpec`,
 says whether the method needs the learned policy, whether it runs the RT-V3 fusion (so the fusion's
@@ -24,6 +25,7 @@ import torch
 
 from rtv3_maniskill.shared_control.assistance import AssistanceMethod
 from rtv3_maniskill.shared_control.config import SharedControlConfig
+from rtv3_maniskill.shared_control.copilot import CopilotSettings, DiffusionCopilot
 from rtv3_maniskill.shared_control.direct import DirectTeleoperation
 from rtv3_maniskill.shared_control.hindsight_optimization import HindsightOptimization
 from rtv3_maniskill.shared_control.oracle_prior import OraclePrior, TargetShownPrior
@@ -60,7 +62,7 @@ class MethodSpec:
         description: one line for the command-line help.
         build: ``build(max_linear_speed, max_angular_speed, **context)`` returns the method, with the
             env controller's speed limits (m/s, rad/s); ``context``: ``policy``, ``config`` (the RT-V3
-            controller's :class:`SharedControlConfig`), ``plan_prior``.
+            controller's :class:`SharedControlConfig`), ``plan_prior``, ``copilot`` (:class:`CopilotSettings`).
         needs_policy: the method needs the learned RT-V3 policy.
         uses_fusion: the method runs RT-V3's fusion and gate (:class:`SharedController`), so its results
             depend on the controller's settings.
@@ -100,6 +102,12 @@ def _ho(lin: float, ang: float, **_: Any) -> AssistanceMethod:
 def _rtv3(lin: float, ang: float, policy: Any = None, config: SharedControlConfig | None = None,
           **_: Any) -> AssistanceMethod:
     return SharedController(policy, _fusion_config(config, lin, ang))
+
+
+def _copilot(lin: float, ang: float, copilot: CopilotSettings | None = None, **_: Any) -> AssistanceMethod:
+    settings = copilot or CopilotSettings()
+    return DiffusionCopilot.from_pretrained(settings.path, gamma=settings.gamma, reverse_steps=settings.reverse_steps,
+                                            max_linear_speed=lin, max_angular_speed=ang)
 
 
 def _rtv3_goal(lin: float, ang: float, policy: Any = None, config: SharedControlConfig | None = None,
@@ -142,6 +150,8 @@ METHODS: dict[str, MethodSpec] = {spec.name: spec for spec in (
     MethodSpec("ho", "HO", "Hindsight Optimization over the grasp candidates", _ho, default=True),
     MethodSpec("rtv3", "RT-V3", "the learned prior fused with the user's twist", _rtv3, needs_policy=True,
                uses_fusion=True, default=True, aliases=("rt_v3",)),
+    MethodSpec("copilot", "Copilot", "a diffusion policy that noises the user's twist part of the way and "
+               "denoises it (partial diffusion)", _copilot, aliases=("diffusion_copilot",)),
     MethodSpec("oracle", "Oracle", "RT-V3's fusion with a prior that knows every goal of the scene", _oracle,
                uses_fusion=True, prepare=_tell_every_goal, ceiling=True),
     MethodSpec("oracle_goal", "Oracle (goal)", "RT-V3's fusion with a prior that knows the true goal", _oracle,
@@ -176,8 +186,8 @@ def method_spec(name: str) -> MethodSpec:
 
 
 def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None,
-                config: SharedControlConfig | None = None, plan_prior: Callable[..., Any] | None = None
-                ) -> AssistanceMethod:
+                config: SharedControlConfig | None = None, plan_prior: Callable[..., Any] | None = None,
+                copilot: CopilotSettings | None = None) -> AssistanceMethod:
     """The assistance method ``name`` (:data:`METHODS`) with the env controller's ``speed_limits`` (m/s, rad/s).
 
     Args:
@@ -186,6 +196,7 @@ def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None
             fusion); its speed limits are replaced by ``speed_limits``.
         plan_prior: the planning oracle's prior class (``benchmarks.plan_oracle.PlanOraclePrior``), built
             with ``max_linear_speed`` and ``max_angular_speed``.
+        copilot: which diffusion copilot ``copilot`` runs, with which gamma (default: the shipped one).
 
     The methods with a :attr:`MethodSpec.prepare` are told each trial's goals by the caller.
 
@@ -196,7 +207,7 @@ def make_method(name: str, speed_limits: tuple[float, float], policy: Any = None
     if spec.needs_policy and policy is None:
         raise ValueError(f"method {name!r} needs a policy (load one with rtv3_maniskill.policies.rtv3.load_policy)")
     lin, ang = speed_limits
-    return spec.build(lin, ang, policy=policy, config=config, plan_prior=plan_prior)
+    return spec.build(lin, ang, policy=policy, config=config, plan_prior=plan_prior, copilot=copilot)
 
 
 __all__ = ["CEILINGS", "DEFAULT_METHODS", "METHODS", "METHOD_NAMES", "MethodSpec", "Trial", "make_method",
