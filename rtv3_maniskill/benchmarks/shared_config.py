@@ -192,7 +192,7 @@ class BenchmarkConfig:
             raise BenchmarkError(f"bad shared_control settings {self.shared_control}: {err}") from None
 
     def copilot_settings(self):
-        """The copilot method's :class:`~rtv3_maniskill.shared_control.copilot.CopilotSettings` (None fields: its defaults)."""
+        """The copilot method's :class:`~rtv3_maniskill.shared_control.copilot.CopilotSettings` (None: its defaults)."""
         # Lazy: it loads torch and LeRobot, and the CLI's parser imports this module.
         from rtv3_maniskill.shared_control.copilot import CopilotSettings
 
@@ -248,7 +248,8 @@ class BenchmarkConfig:
             copilot = dict(path=str(Path(settings.path).resolve()), gamma=settings.gamma,
                            reverse_steps=settings.reverse_steps, weights_sha256=weights_digest(Path(settings.path)))
         return dict(
-            seed=self.seed, max_steps=self.max_steps, **({"copilot": copilot} if copilot else {}), **_FIXED_SETTINGS, scene_type=self.scene_type,
+            seed=self.seed, max_steps=self.max_steps, **({"copilot": copilot} if copilot else {}),
+            **_FIXED_SETTINGS, scene_type=self.scene_type,
             goals_per_scene=self.goals_per_scene, protocol=PROTOCOL, safety_filter=self.safety_filter,
             policy_path=str(policy_path.resolve()) if policy_path is not None else None,
             policy_weights_sha256=weights_digest(policy_path) if policy_path is not None else None,

@@ -54,7 +54,8 @@ def _observation(batch: int = 2) -> dict[str, torch.Tensor]:
     mask[:, :2] = 1.0
     state = torch.zeros(batch, features.STATE_DIM)
     state[:, features.EE_QUAT] = torch.tensor([0.0, 1.0, 0.0, 0.0])
-    return {features.STATE: state, features.POINT_CLOUD: torch.rand(batch, 16, 6, generator=torch.Generator().manual_seed(1)) * 0.1,
+    cloud = torch.rand(batch, 16, 6, generator=torch.Generator().manual_seed(1)) * 0.1
+    return {features.STATE: state, features.POINT_CLOUD: cloud,
             features.POINT_CLOUD_MASK: torch.ones(batch, 16), features.GRASPS: g, features.GRASPS_MASK: mask}
 
 
