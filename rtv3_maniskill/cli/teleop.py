@@ -27,7 +27,11 @@ from rtv3_maniskill.records import claim_folder
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", default="rtv3",
-                        help="assistance method: rtv3, direct or ho (the ones told nothing of the target)")
+                        help="assistance method: rtv3, direct, ho or copilot (the ones told nothing of the target)")
+    parser.add_argument("--copilot-path", type=Path, default=None,
+                        help="--method copilot: its diffusion policy (rtv3 train-copilot; default: the shipped one)")
+    parser.add_argument("--copilot-gamma", type=float, default=None,
+                        help="--method copilot: its noising fraction in [0, 1] (default: its validated one)")
     parser.add_argument("--input", default="keyboard",
                         help="keyboard, gamepad or simulated:NAME (NAME: ideal, noisy, laggy, mode_switching, ...)")
     parser.add_argument("--scene-seed", type=int, default=0, help="scene of the first trial (trial i: seed + i)")
@@ -87,6 +91,17 @@ def run(args: argparse.Namespace) -> int:
             resolve_checkpoint(policy_path(args))
         except CheckpointError as err:
             raise SystemExit(f"error: {err}") from None
+    copilot = None
+    if args.method == "copilot":
+        from rtv3_maniskill.shared_control.copilot import CopilotSettings
+
+        given = dict(path=args.copilot_path and str(args.copilot_path), gamma=args.copilot_gamma)
+        try:
+            copilot = CopilotSettings(**{k: v for k, v in given.items() if v is not None})
+        except ValueError as err:
+            raise UsageError(f"--copilot-gamma: {err}") from None
+    elif args.copilot_path is not None or args.copilot_gamma is not None:
+        raise UsageError("--copilot-path and --copilot-gamma are for --method copilot")
     if args.headless and not args.input.startswith("simulated:"):
         raise SystemExit(f"error: --headless needs a simulated input (--input simulated:NAME), got {args.input!r}")
     if args.push_to_hub is not None and args.record is None:
@@ -104,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
         participant=args.participant, record=args.record, resume=args.resume, headless=args.headless,
         realtime=None if args.realtime == "auto" else args.realtime == "on", policy_path=policy_path(args),
         **scene_settings(args), fusion=fusion_name(args), target_grasp=args.target_grasp,
-        user_seed=args.user_seed, safety_filter=args.safety_filter,
+        user_seed=args.user_seed, safety_filter=args.safety_filter, copilot=copilot,
         screenshot=args.screenshot, screenshot_step=args.screenshot_step,
         trial_config=TrialConfig(timeout_s=args.timeout),
     )

@@ -20,7 +20,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-from rtv3_maniskill.datagen.merge import has_scene_summary, merge
 from rtv3_maniskill.features import REPO_ID
 from rtv3_maniskill.records import claim_folder
 
@@ -46,6 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def training_data(datasets: list[Path], output: Path) -> Path:
     """The one dataset to train on: ``datasets[0]`` when it already has the scene summary, else ``output/data``
     (the merged, converted datasets; made once)."""
+    from rtv3_maniskill.datagen.merge import has_scene_summary, merge  # LeRobot: loaded when the command runs
+
     if len(datasets) == 1 and has_scene_summary(datasets[0]):
         return datasets[0]
     data = output / "data"

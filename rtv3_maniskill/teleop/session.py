@@ -9,6 +9,7 @@ outcome (success, timeout, collision, unmatched); the trial is recorded as one L
 
 from __future__ import annotations
 
+import dataclasses
 import signal
 import threading
 import time
@@ -25,6 +26,7 @@ from rtv3_maniskill.benchmarks.episodes import SharedControlEnv, controller_spee
 from rtv3_maniskill.datagen.demonstrations import describe_grasp, state_vector
 from rtv3_maniskill.features import GRIPPER_CLOSED
 from rtv3_maniskill.shared_control.config import SharedControlConfig
+from rtv3_maniskill.shared_control.copilot import CopilotSettings
 from rtv3_maniskill.shared_control.methods import make_method, method_spec
 from rtv3_maniskill.teleop.display import TeleopDisplay
 from rtv3_maniskill.teleop.grasp_actions import EVENTS, GraspActionConfig, GraspActions
@@ -61,6 +63,8 @@ class SessionConfig:
     init_qpos: np.ndarray | None = None
     """Start joint positions (7,) instead of the rest pose (e.g. IK of the pre-grasp)."""
     user_seed: int = 0
+    copilot: CopilotSettings | None = None
+    """Which diffusion copilot ``method="copilot"`` runs, with which gamma (None: the shipped one, its default)."""
     safety_filter: str | None = None
     """``"neoss"``: the NEO collision damper between the method's twist and the arm (``SharedControlEnv``)."""
     screenshot: Path | None = None
@@ -153,7 +157,7 @@ class TeleopSession:
             self.renderer = RenderProcess({**scene, "human_render_camera_configs": camera})
         self.env = SharedControlEnv(rendered_context=True, safety_filter=config.safety_filter, **scene, **render)
         self.env.method = make_method(config.method, controller_speed_limits(self.env.base), policy=policy,
-                                      config=fusion)
+                                      config=fusion, copilot=config.copilot)
         self.speed_limits = controller_speed_limits(self.env.base)
         self.display = None
         if not config.headless:  # the window opens once the scene can be shown
@@ -169,7 +173,8 @@ class TeleopSession:
                 scene_seed=config.scene_seed, trials=config.trials, timeout_s=config.trial_config.timeout_s,
                 scene_type=config.scene_type,
                 **({"object_source": config.object_source} if config.object_source != "procedural" else {}),
-                **({"fusion": config.fusion} if config.fusion != "tuned" else {})))
+                **({"fusion": config.fusion} if config.fusion != "tuned" else {}),
+                **({"copilot": dataclasses.asdict(config.copilot)} if config.copilot else {})))
         self.quit = False
         self.interrupted = False
         """Ctrl-C came: the trial in progress ends as ``aborted`` (recorded as Esc would) and the session ends."""
