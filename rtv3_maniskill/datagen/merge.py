@@ -109,7 +109,8 @@ def add_scene_summary(source: str | Path, output: str | Path) -> LeRobotDataset:
         for path in tqdm(sorted((source / "data").glob("*/*.parquet")), desc="scene summary", unit="file"):
             table = _with_scene_summary(pq.read_table(path), schema)
             pq.write_table(table, output / path.relative_to(source))
-            summaries.append(np.stack(table.column(features.ENV_STATE).to_numpy(zero_copy_only=False)))
+            column = table.column(features.ENV_STATE).combine_chunks()
+            summaries.append(column.flatten().to_numpy().reshape(len(table), -1))
             episode_of.append(table.column("episode_index").to_numpy())
             del table
         summaries, episode_of = np.concatenate(summaries), np.concatenate(episode_of)
@@ -141,13 +142,16 @@ def _add_episode_stats(root: Path, summaries: np.ndarray, episode_of: np.ndarray
         table = pq.read_table(path)
         per_episode = [_stats(summaries[episode_of == e]) for e in table.column("episode_index").to_pylist()]
         for stat in per_episode[0]:
-            values = [np.asarray(s[stat]).reshape(-1).tolist() for s in per_episode]
+            values = np.stack([np.asarray(s[stat]).reshape(-1) for s in per_episode])  # (episodes, D)
+            offsets = np.arange(0, values.size + 1, values.shape[1], dtype=np.int32)
             name = f"stats/{features.ENV_STATE}/{stat}"
             if name in table.column_names:  # left behind by a removal of the feature (lerobot remove_feature)
                 table = table.drop_columns([name])
-            table = table.append_column(name, pa.array(values))
-        # through Hugging Face datasets, as LeRobot writes it (its schema note must list the new columns)
-        datasets.Dataset(table.replace_schema_metadata(None)).to_parquet(path)
+            table = table.append_column(name, pa.ListArray.from_arrays(offsets, values.reshape(-1)))
+        # the Hugging Face schema note must list the new columns (as datasets writes it; building a
+        # datasets.Dataset instead would hash the whole table, gigabytes for a large dataset)
+        schema = datasets.Features.from_arrow_schema(table.schema.remove_metadata()).arrow_schema
+        pq.write_table(table.cast(schema), path)
 
 
 def merge(sources: list[Path], output: Path):
