@@ -20,6 +20,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from rtv3_maniskill import features
 from rtv3_maniskill.features import REPO_ID
 from rtv3_maniskill.records import claim_folder
 
@@ -42,16 +43,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
 
 
-def training_data(datasets: list[Path], output: Path) -> Path:
-    """The one dataset to train on: ``datasets[0]`` when it already has the scene summary, else ``output/data``
-    (the merged, converted datasets; made once)."""
-    from rtv3_maniskill.datagen.merge import has_scene_summary, merge  # LeRobot: loaded when the command runs
+COPILOT_FEATURES = (features.STATE, features.ENV_STATE, features.ACTION)
+"""What the copilot reads; the training copy keeps only these (and LeRobot's index columns): a frame of the
+point cloud and grasps would be read 8 times per sample (the action horizon), 6x slower training on CPU."""
 
-    if len(datasets) == 1 and has_scene_summary(datasets[0]):
-        return datasets[0]
+
+def training_data(datasets: list[Path], output: Path) -> Path:
+    """The one dataset to train on, ``output/data`` (made once): the datasets merged (``rtv3 merge``, which adds
+    the scene summary where it is missing) and cut to ``COPILOT_FEATURES``."""
+    from lerobot.datasets.dataset_tools import remove_feature  # LeRobot: loaded when the command runs
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from rtv3_maniskill.datagen.merge import has_scene_summary, merge
+
     data = output / "data"
-    if not (data / "meta" / "info.json").is_file():
-        merge(datasets, data)
+    if (data / "meta" / "info.json").is_file():
+        return data
+    merged_root = output / ".merged"
+    shutil.rmtree(merged_root, ignore_errors=True)  # left by a run that was killed
+    shutil.rmtree(data, ignore_errors=True)
+    if len(datasets) == 1 and has_scene_summary(datasets[0]):
+        merged = LeRobotDataset(REPO_ID, root=datasets[0])
+    else:
+        merged, _ = merge(datasets, merged_root)
+    extra = [k for k in merged.meta.features if k.startswith("observation.") and k not in COPILOT_FEATURES]
+    try:
+        remove_feature(merged, extra, output_dir=data, repo_id=REPO_ID)
+    except BaseException:
+        shutil.rmtree(data, ignore_errors=True)
+        raise
+    finally:
+        shutil.rmtree(merged_root, ignore_errors=True)
     return data
 
 

@@ -94,6 +94,7 @@ class DiffusionCopilot:
         self.max_linear_speed, self.max_angular_speed = max_linear_speed, max_angular_speed
         self.seed = seed
         self.summary_dim = int(config.env_state_feature.shape[0])
+        self.max_grasps = (self.summary_dim - features.HEIGHT_MAP_CELLS ** 2) // len(features.SUMMARY_GRASP_CHANNELS)
         self._history: deque[dict[str, torch.Tensor]] = deque(maxlen=config.n_obs_steps)
         self._generator = torch.Generator().manual_seed(seed)
         self._last: dict[str, Any] = {"mode": "shared", "gamma": self.gamma}

@@ -383,3 +383,32 @@ def test_stock_lerobot_policies_train_on_generated_dataset(tiny_dataset, tmp_pat
     assert result.returncode == 0, result.stderr[-3000:]
     config = json.loads((out / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
     assert config["input_features"][features.ENV_STATE]["type"] == "ENV"
+
+
+@pytest.mark.sim
+def test_train_copilot_trains_a_copilot_that_steps_and_resumes(tiny_dataset, tmp_path, capsys):
+    """`rtv3 train-copilot` (lerobot-train's diffusion policy on a slim copy of the data) gives a checkpoint the
+    copilot method loads and steps; a rerun of a finished run trains nothing more."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from rtv3_maniskill.cli.train_copilot import COPILOT_FEATURES, trained_steps
+    from rtv3_maniskill.shared_control.copilot import DiffusionCopilot
+
+    run = tmp_path / "copilot"
+    args = ["train-copilot", str(tiny_dataset), "--output", str(run), "--steps", "2", "--batch-size", "2",
+            "--save-freq", "2"]
+    assert main(args) == 0
+    data = json.loads((run / "data" / "meta" / "info.json").read_text())["features"]
+    assert [k for k in data if k.startswith(("observation.", "action"))] == list(COPILOT_FEATURES)
+    assert trained_steps(run / "train") == 2
+    copilot = DiffusionCopilot.from_pretrained(run / "train" / "checkpoints" / "last" / "pretrained_model",
+                                               gamma=0.5)
+    assert copilot.max_grasps == 16
+    frame = LeRobotDataset(REPO_ID, root=tiny_dataset)[0]
+    observation = {k: frame[k][None] for k in (features.STATE, features.ENV_STATE, features.POINT_CLOUD,
+                                               features.POINT_CLOUD_MASK, features.GRASPS, features.GRASPS_MASK)}
+    twist = copilot.step(observation, torch.tensor([[0.1, 0.0, 0.0, 0.0, 0.0, 0.0]]))
+    assert twist.shape == (1, 6) and torch.isfinite(twist).all()
+    capsys.readouterr()
+    assert main(args) == 0
+    assert "trained (2 steps)" in capsys.readouterr().out
