@@ -260,6 +260,13 @@ class EpisodeResult:
         return trial_outcome(collision=self.collision, success=self.success) or "timeout"
 
     @property
+    def twist_deviation(self) -> float:
+        """Mean over the steps of ``||robot_twist - user_twist||`` (6-D, m/s and rad/s as numbers; 0 without steps)."""
+        if not self.diagnostics:
+            return 0.0
+        return float(np.mean([np.linalg.norm(d["robot_twist"] - d["user_twist"]) for d in self.diagnostics]))
+
+    @property
     def mode_counts(self) -> dict[str, int]:
         """Steps per assistance mode."""
         counts: dict[str, int] = {}

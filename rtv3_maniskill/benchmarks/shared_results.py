@@ -18,12 +18,14 @@ from rtv3_maniskill.records import RecordStore
 RESULT_FIELDS = (
     "scene_seed", "grasp_index", "user", "method", "outcome", "success", "collision", "steps",
     "final_distance", "autonomous_steps", "user_only_steps", "user_seed", "wall_time_s", "qp_infeasible_steps",
-    "contact",
+    "contact", "twist_deviation",
 )
 """Columns of ``results.csv``: the trial (scene, target, user, method), its outcome (``success``,
 ``collision`` or ``timeout``), ``success`` (the pre-grasp was reached, contact or not), ``collision``,
 control steps, the final pose distance, steps per assistance mode, the user's noise seed, seconds,
-steps a safety filter's QP had no solution, and what the first contact touched."""
+steps a safety filter's QP had no solution, what the first contact touched, and ``twist_deviation``: the mean
+over the trial's steps of ``||robot twist - user twist||`` (the 6-D TCP body twists, m/s and rad/s taken as
+numbers; for Direct only its speed limit), how far the method moved the user's command."""
 RESULT_KEY = ("scene_seed", "grasp_index", "user", "method")
 GOAL_FIELDS = ("scene_seed", "grasp_index", "check")
 """Columns of ``goals.csv``: every grasp candidate of a scene and its goal check (``benchmarks.goals.GOAL_CHECKS``)."""

@@ -152,6 +152,7 @@ class SceneRunner:
                         autonomous_steps=counts.get("autonomous", 0), user_only_steps=counts.get("user_only", 0),
                         user_seed=u_seed, wall_time_s=f"{time.perf_counter() - start:.2f}",
                         qp_infeasible_steps=result.qp_infeasible_steps, contact=result.contact,
+                        twist_deviation=f"{result.twist_deviation:.4f}",
                     )
                     rows.append(row)
                     if on_trial is not None:

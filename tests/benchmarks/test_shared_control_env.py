@@ -476,11 +476,11 @@ def test_an_output_folder_of_another_version_is_refused(tmp_path):
     config = BenchmarkConfig(output=tmp_path / "old_columns", scenes=1, users=["laggy"], methods=["direct"])
     _finished_run(config.output, config, [_row(900000, "direct", "success", 30)])
     _finished_run(tmp_path / "ho", config, [_row(900000, "ho", "success", 40)])
-    fields = RESULT_FIELDS[:-1]  # a file written before the contact column
+    fields = RESULT_FIELDS[:-1]  # a file written before the twist_deviation column
     row = dict(_row(900000, "direct", "collision", 30), wall_time_s=1.0)
     (config.output / "results.csv").write_text(",".join(fields) + "\n" + ",".join(str(row.get(k, 0)) for k in fields)
                                                + "\n")
-    with pytest.raises(BenchmarkError, match="has the columns .* expected .*'contact'"):
+    with pytest.raises(BenchmarkError, match="has the columns .* expected .*'twist_deviation'"):
         run_benchmark(config, progress=False)
     with pytest.raises(SystemExit, match="^error: .*has the columns"):
         main(["benchmark-shared", "--scenes", "1", "--users", "laggy", "--methods", "direct",
