@@ -11,7 +11,8 @@
 #      alone and under RT-V3 (the preset's fusion) with the noisy and single-DoF users, the planner
 #      re-plans from the visited states (most from the last second of failed rollouts), and the prior
 #      trains STEPS more steps on every demonstration and relabel so far;
-#   3. every stage is evaluated on the validation block (rtv3 evaluate planning --preset paper --seed 8,
+#   3. a last stage, LONG_STEPS more steps on every demonstration and relabel;
+#   4. every stage is evaluated on the validation block (rtv3 evaluate planning --preset paper --seed 8,
 #      EVAL_SCENES scenes, never the test block 9) and added to OUT/curve.csv and OUT/curve.png
 #      (validation SR / CR against trajectories seen); the stage with the best validation SR is copied
 #      to OUT/final.
@@ -19,8 +20,9 @@
 # last checkpoint, a finished evaluation is kept) and is skipped when its output is complete. Run it
 # from a git worktree at a fixed commit so that work on main cannot change a running job:
 #   git worktree add ../rtv3-paper-prior HEAD && cd ../rtv3-paper-prior && nohup bash scripts/train_paper_prior.sh &
-# Environment: CHUNK_SCENES, ROUNDS, DAGGER_SCENES, STEPS0, STEPS, BATCH, WORKERS, EVAL_SCENES,
-# CLEARANCE, DEVICE (cpu or cuda), OUT trade time for quality.
+# Environment: CHUNK_SCENES, ROUNDS, DAGGER_SCENES, STEPS0, STEPS, LONG_STEPS, BATCH, WORKERS, EVAL_SCENES,
+# CLEARANCE, DEVICE (cpu or cuda), OUT trade time for quality; MIN_FREE_GB (20) stops it before the disk fills
+# (each stage's compact cache is removed once the stage is trained).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 CHUNK_SCENES=${CHUNK_SCENES:-200 300 500 1000 1000}
@@ -28,6 +30,8 @@ ROUNDS=${ROUNDS:-3}
 DAGGER_SCENES=${DAGGER_SCENES:-300}
 STEPS0=${STEPS0:-6000}
 STEPS=${STEPS:-4000}
+LONG_STEPS=${LONG_STEPS:-24000}
+MIN_FREE_GB=${MIN_FREE_GB:-20}
 BATCH=${BATCH:-64}
 WORKERS=${WORKERS:-2}
 EVAL_SCENES=${EVAL_SCENES:-100}
@@ -57,17 +61,28 @@ stage() {  # NAME INIT(fresh|checkpoint) STEPS LR DATASETS... -> OUT/NAME/run/ch
   for d in "$@"; do roots+=(--dataset.root "$d"); done
   if [[ $init == fresh ]]; then start=("${fresh[@]}"); else start=(--policy.path "$init"); fi
   mkdir -p "$dir"
-  [[ -f $dir/cache/summary.json ]] || $rtv3 compact-cache build "${roots[@]}" --output "$dir/cache" \
-      --max-mib 8000 "${start[@]}"
-  if [[ ! -f $dir/run/checkpoints/last/model.safetensors || ! -f $dir/finished ]]; then
+  if [[ ! -f $dir/finished ]]; then
+    enough_disk
+    [[ -f $dir/cache/summary.json ]] || $rtv3 compact-cache build "${roots[@]}" --output "$dir/cache" \
+        --max-mib 8000 "${start[@]}"
     $rtv3 compact-cache train --cache "$dir/cache" --output "$dir/run" --steps "$steps" --batch-size "$BATCH" \
         --save-freq 500 --log-freq 250 --device "$DEVICE" --lr "$lr" --lr-decay 0.9995 --min-lr 1e-5
     $rtv3 compact-cache finish "$dir/run/checkpoints/last"
     touch "$dir/finished"
   fi
+  # Each stage builds its own cache of every dataset so far: once trained, only its summary is kept.
+  for f in "$dir"/cache/*; do [[ $f == */summary.json ]] || rm -rf "$f"; done
   [[ -f $dir/planning/planning_summary.json ]] || $rtv3 evaluate planning --preset paper --seed 8 \
       --scenes "$EVAL_SCENES" --policy.path "$dir/run/checkpoints/last" --output "$dir/planning"
   $rtv3 learning-curve "$OUT"
+}
+
+enough_disk() {  # stop (resumably) before the disk fills: MIN_FREE_GB must stay free for everything else
+  local free_gb=$(( $(df -Pk . | awk 'NR==2 {print $4}') / 1048576 ))
+  if (( free_gb < MIN_FREE_GB )); then
+    echo "train_paper_prior: only ${free_gb} GB free on $(pwd), below MIN_FREE_GB=${MIN_FREE_GB}: stopping; free some and rerun" >&2
+    exit 1
+  fi
 }
 
 generated() {  # FOLDER SCENES: whether rtv3 generate has finished SCENES scenes there
@@ -81,6 +96,7 @@ c=0
 for scenes in $CHUNK_SCENES; do
   c=$((c + 1))
   chunk=data/paper_prior/demos_$c
+  generated "$chunk" "$scenes" || enough_disk
   generated "$chunk" "$scenes" || $rtv3 generate --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
       --num-scenes "$scenes" --seed $((30 + c)) --output "$chunk" --end-at pregrasp --grasps-per-scene 16 \
       --num-points 512 --workers "$WORKERS"
@@ -94,6 +110,7 @@ for scenes in $CHUNK_SCENES; do
 done
 for ((r = 1; r <= ROUNDS; r++)); do
   relabels=data/paper_prior/dagger_$r
+  [[ -f $relabels/rtv3_summary.json ]] || enough_disk
   [[ -f $relabels/rtv3_summary.json ]] || $rtv3 dagger --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
       --policy.path "$prior" --output "$relabels" --num-scenes "$DAGGER_SCENES" --seed $((50 + r)) \
       --drivers prior,rtv3:noisy,rtv3:single_dof,prior --targets-per-scene 8 --relabels-per-rollout 1 \
@@ -102,6 +119,11 @@ for ((r = 1; r <= ROUNDS; r++)); do
   stage "dagger_$r" "$prior" "$STEPS" 3e-4 "${datasets[@]}"
   prior=$OUT/dagger_$r/run/checkpoints/last
 done
+# Then LONG_STEPS more on everything: the stages above add STEPS each, which may leave the prior short of
+# steps rather than of data (the curve flattened while the data grew tenfold).
+if (( LONG_STEPS > 0 )); then
+  stage long "$prior" "$LONG_STEPS" 3e-4 "${datasets[@]}"
+fi
 best=$($rtv3 learning-curve "$OUT" --best)
 mkdir -p "$OUT/final"
 cp "$best/"{config.json,model.safetensors} "$OUT/final/"

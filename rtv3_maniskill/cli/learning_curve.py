@@ -1,6 +1,6 @@
 """``rtv3 learning-curve OUT``: the paper-prior campaign's learning curve (validation planning against trajectories).
 
-Reads every stage folder of a ``scripts/train_paper_prior.sh`` output (``OUT/demos_K``, ``OUT/dagger_R``:
+Reads every stage folder of a ``scripts/train_paper_prior.sh`` output (``OUT/demos_K``, ``OUT/dagger_R``, ``OUT/long``:
 ``cache/summary.json``, ``run/checkpoints/last/model.safetensors``, ``planning/planning_summary.json``) and
 writes ``OUT/curve.csv`` and ``OUT/curve.png``; with ``--best`` it prints the checkpoint folder of the stage
 with the highest validation SR (fewer collisions break a tie) instead.
@@ -17,7 +17,8 @@ from pathlib import Path
 
 from safetensors import safe_open
 
-STAGE = re.compile(r"^(demos|dagger)_(\d+)$")
+STAGE = re.compile(r"^(demos|dagger)_(\d+)$|^(long)$")
+KINDS = ("demos", "dagger", "long")  # the order the recipe trains them in
 FIELDS = ("stage", "trajectories", "frames", "model_step", "trials", "SR", "CR", "TOR")
 
 
@@ -27,7 +28,7 @@ def _model_step(weights: Path) -> int:
 
 
 def stages(out: Path) -> list[dict]:
-    """One row per evaluated stage, in training order (demonstration chunks, then DAgger rounds)."""
+    """One row per evaluated stage, in training order (demonstration chunks, DAgger rounds, the long stage)."""
     found = []
     for folder in out.iterdir():
         match = STAGE.match(folder.name)
@@ -36,7 +37,8 @@ def stages(out: Path) -> list[dict]:
             continue
         cache = json.loads((folder / "cache" / "summary.json").read_text())
         plan = json.loads(planning.read_text())
-        found.append(((match[1] == "dagger", int(match[2])), dict(
+        kind, number = (match[1], int(match[2])) if match[1] else (match[3], 0)
+        found.append(((KINDS.index(kind), number), dict(
             stage=folder.name, trajectories=cache["episodes"], frames=cache["frames"],
             model_step=_model_step(folder / "run" / "checkpoints" / "last" / "model.safetensors"),
             trials=plan["trials"], SR=plan["SR"], CR=plan["CR"], TOR=plan["TOR"],
