@@ -30,7 +30,7 @@ from lerobot.policies.factory import make_pre_post_processors
 from rtv3_maniskill import features
 from rtv3_maniskill.shared_control.twist_utils import check_speed_limits, clamp_twist_speed, step_inputs
 
-DEFAULT_GAMMA = 0.5
+DEFAULT_GAMMA = 0.1
 """The noising fraction ``rtv3 benchmark-shared`` and ``rtv3 teleop`` use unless told (chosen on the
 validation block, see docs/RESULTS.md)."""
 SHIPPED_COPILOT = Path(__file__).resolve().parents[1] / "checkpoints" / "copilot_diffusion"
