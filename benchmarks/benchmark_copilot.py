@@ -1,6 +1,6 @@
 """Latency of one diffusion-copilot step on CPU (target: median <= 40 ms on one thread, inside the 20 Hz loop).
 
-Usage: ``python benchmarks/benchmark_copilot.py [--copilot-path DIR] [--gammas 0.25,0.5,1.0] [--steps 200]
+Usage: ``python benchmarks/benchmark_copilot.py [--copilot-path DIR] [--gammas 0.1,0.2,0.5,1.0] [--steps 200]
 [--repeats 3] [--threads 1]``
 
 Times :meth:`DiffusionCopilot.step` (scene summary of the point cloud and grasps, normalisation, forward
@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--copilot-path", default=str(SHIPPED_COPILOT),
                         help="the copilot's pretrained_model folder (default: the shipped one)")
-    parser.add_argument("--gammas", default="0.25,0.5,1.0", help="comma-separated noising fractions to time")
+    parser.add_argument("--gammas", default="0.1,0.2,0.5,1.0", help="comma-separated noising fractions to time")
     parser.add_argument("--reverse-steps", type=int, default=None, help="DDIM steps (default: the checkpoint's)")
     parser.add_argument("--steps", type=int, default=200, help="timed steps per repeat")
     parser.add_argument("--warmup", type=int, default=10, help="untimed steps first")

@@ -1,6 +1,6 @@
 """The copilot's gamma sweep on the validation block: SR and distance from the user's command against gamma.
 
-Usage: ``python benchmarks/copilot_gamma_sweep.py [--output outputs/val/copilot_sweep] [--gammas 0.2,0.4,0.6,0.8,1.0]
+Usage: ``python benchmarks/copilot_gamma_sweep.py [--output outputs/val/copilot_sweep] [--gammas 0.1,0.2,0.4,0.6,0.8,1.0]
 [--scenes 20] [--goals-per-scene 4] [--users noisy,single_dof] [--copilot-path DIR] [--workers 1]``
 
 Runs ``rtv3 benchmark-shared --preset paper --seed 8`` (the validation block; 9 is the test block) once
@@ -46,7 +46,7 @@ def _by_trial(rows: list[dict[str, str]], method: str) -> dict[tuple[str, str, s
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--output", type=Path, default=Path("outputs/val/copilot_sweep"))
-    parser.add_argument("--gammas", default="0.2,0.4,0.6,0.8,1.0")
+    parser.add_argument("--gammas", default="0.1,0.2,0.4,0.6,0.8,1.0")
     parser.add_argument("--scenes", type=int, default=20)
     parser.add_argument("--goals-per-scene", type=int, default=4)
     parser.add_argument("--users", default="noisy,single_dof")
