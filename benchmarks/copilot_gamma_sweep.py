@@ -1,7 +1,8 @@
 """The copilot's gamma sweep on the validation block: SR and distance from the user's command against gamma.
 
 Usage: ``python benchmarks/copilot_gamma_sweep.py [--output outputs/val/copilot_sweep]
-[--gammas 0.1,0.2,0.4,0.6,0.8,1.0] [--scenes 20] [--goals-per-scene 4] [--users noisy,single_dof] [--copilot-path DIR] [--workers 1]``
+[--gammas 0.1,0.2,0.4,0.6,0.8,1.0] [--scenes 20] [--goals-per-scene 4] [--users noisy,single_dof]
+[--copilot-path DIR] [--workers 1]``
 
 Runs ``rtv3 benchmark-shared --preset paper --seed 8`` (the validation block; 9 is the test block) once
 with Direct and RT-V3 and once per gamma with the copilot, every run on the same scenes, goals and user
