@@ -96,10 +96,12 @@ c=0
 for scenes in $CHUNK_SCENES; do
   c=$((c + 1))
   chunk=data/paper_prior/demos_$c
-  generated "$chunk" "$scenes" || enough_disk
-  generated "$chunk" "$scenes" || $rtv3 generate --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
-      --num-scenes "$scenes" --seed $((30 + c)) --output "$chunk" --end-at pregrasp --grasps-per-scene 16 \
-      --num-points 512 --workers "$WORKERS"
+  if ! generated "$chunk" "$scenes"; then
+    enough_disk
+    $rtv3 generate --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
+        --num-scenes "$scenes" --seed $((30 + c)) --output "$chunk" --end-at pregrasp --grasps-per-scene 16 \
+        --num-points 512 --workers "$WORKERS"
+  fi
   datasets+=("$chunk")
   if [[ $prior == fresh ]]; then
     stage "demos_$c" fresh "$STEPS0" 1e-3 "${datasets[@]}"
@@ -110,11 +112,13 @@ for scenes in $CHUNK_SCENES; do
 done
 for ((r = 1; r <= ROUNDS; r++)); do
   relabels=data/paper_prior/dagger_$r
-  [[ -f $relabels/rtv3_summary.json ]] || enough_disk
-  [[ -f $relabels/rtv3_summary.json ]] || $rtv3 dagger --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
-      --policy.path "$prior" --output "$relabels" --num-scenes "$DAGGER_SCENES" --seed $((50 + r)) \
-      --drivers prior,rtv3:noisy,rtv3:single_dof,prior --targets-per-scene 8 --relabels-per-rollout 1 \
-      --failure-relabels 4 --workers "$WORKERS"
+  if [[ ! -f $relabels/rtv3_summary.json ]]; then
+    enough_disk
+    $rtv3 dagger --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
+        --policy.path "$prior" --output "$relabels" --num-scenes "$DAGGER_SCENES" --seed $((50 + r)) \
+        --drivers prior,rtv3:noisy,rtv3:single_dof,prior --targets-per-scene 8 --relabels-per-rollout 1 \
+        --failure-relabels 4 --workers "$WORKERS"
+  fi
   datasets+=("$relabels")
   stage "dagger_$r" "$prior" "$STEPS" 3e-4 "${datasets[@]}"
   prior=$OUT/dagger_$r/run/checkpoints/last

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from safetensors import safe_open
 
-STAGE = re.compile(r"^(demos|dagger)_(\d+)$|^(long)$")
+STAGE = re.compile(r"^(?:(demos|dagger)_(\d+)|long)$")
 KINDS = ("demos", "dagger", "long")  # the order the recipe trains them in
 FIELDS = ("stage", "trajectories", "frames", "model_step", "trials", "SR", "CR", "TOR")
 
@@ -37,7 +37,7 @@ def stages(out: Path) -> list[dict]:
             continue
         cache = json.loads((folder / "cache" / "summary.json").read_text())
         plan = json.loads(planning.read_text())
-        kind, number = (match[1], int(match[2])) if match[1] else (match[3], 0)
+        kind, number = (match[1], int(match[2])) if match[1] else ("long", 0)
         found.append(((KINDS.index(kind), number), dict(
             stage=folder.name, trajectories=cache["episodes"], frames=cache["frames"],
             model_step=_model_step(folder / "run" / "checkpoints" / "last" / "model.safetensors"),
