@@ -4,8 +4,9 @@
 (:func:`~rtv3_maniskill.benchmarks.shared_statistics.summarize`): ``summary.csv`` holds the numbers,
 ``summary.md`` a table with the methods' labels (:data:`~rtv3_maniskill.shared_control.methods.METHODS`),
 each method paired with Direct, the paper's Table II success rates beside, the goal counts of
-``goals.csv`` above and the shares of the oracles' gains below (under the goal rule ``all``, also the success
-rate on the goals of each arm-reach check); ``success_rates.png`` plots SR and CR
+``goals.csv`` above and below the shares of the oracles' gains, each method paired with RT-V3 (when it ran)
+and, under the goal rule ``all``, the success rate on the goals of each arm-reach check;
+``success_rates.png`` plots SR and CR
 per user and method.
 """
 
@@ -21,7 +22,12 @@ from typing import Any
 import numpy as np
 
 from rtv3_maniskill.benchmarks.shared_results import goal_rows, read_results
-from rtv3_maniskill.benchmarks.shared_statistics import SUMMARY_FIELDS, success_by_goal_check, summarize
+from rtv3_maniskill.benchmarks.shared_statistics import (
+    SUMMARY_FIELDS,
+    paired_with_baseline,
+    success_by_goal_check,
+    summarize,
+)
 from rtv3_maniskill.shared_control.methods import CEILINGS, METHODS
 
 PAPER_TABLE2_SR = {
@@ -69,11 +75,14 @@ def goal_counts(rows: Sequence[dict[str, str]]) -> dict[str, int]:
 
 def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | None = None,
                      goal_rule: str = "reachable",
-                     by_check: dict[tuple[str, str], dict[str, tuple[int, float]]] | None = None) -> str:
+                     by_check: dict[tuple[str, str], dict[str, tuple[int, float]]] | None = None,
+                     versus_rtv3: dict[tuple[str, str], dict[str, Any]] | None = None) -> str:
     """Markdown table: one row per (user, method), paired with Direct, the paper's SR beside; the goal
-    counts of ``goals.csv`` under ``goal_rule`` above it; below, the shares of the ceilings' gains and,
-    with ``by_check`` (:func:`~rtv3_maniskill.benchmarks.shared_statistics.success_by_goal_check`),
-    the success rate per goal check."""
+    counts of ``goals.csv`` under ``goal_rule`` above it; below, the shares of the ceilings' gains,
+    with ``versus_rtv3`` (:func:`~rtv3_maniskill.benchmarks.shared_statistics.paired_with_baseline`
+    with baseline ``"rtv3"``) each method paired with RT-V3 and, with ``by_check``
+    (:func:`~rtv3_maniskill.benchmarks.shared_statistics.success_by_goal_check`), the success rate per
+    goal check."""
     lines = []
     if goals and goals.get("candidates"):
         infeasible = ", ".join(f"{v} {k}" for k, v in goals.items() if k not in ("feasible", "candidates", "scenes"))
@@ -121,7 +130,23 @@ def summary_markdown(summary: Sequence[dict[str, Any]], goals: dict[str, int] | 
             interval = "-" if low is None else f"{_percent(low)} to {_percent(high)}"
             share = _percent(s[f"{ceiling}_gain_share"])
             notes += f"| {s['user']} | {method_label(s['method'])} | {share} | {interval} |\n"
-    return "\n".join(lines) + "\n" + notes + _by_check_markdown(summary, by_check or {})
+    return ("\n".join(lines) + "\n" + notes + _versus_rtv3_markdown(summary, versus_rtv3 or {})
+            + _by_check_markdown(summary, by_check or {}))
+
+
+def _versus_rtv3_markdown(summary: Sequence[dict[str, Any]], versus: dict[tuple[str, str], dict[str, Any]]) -> str:
+    """W / L of each method against RT-V3 behind the same safety filter, in ``summary``'s order; empty
+    without RT-V3."""
+    rows = [(s, versus[(s["user"], s["method"])]) for s in summary if (s["user"], s["method"]) in versus]
+    if not rows:
+        return ""
+    text = ("\nEach method paired with RT-V3 (behind the same safety filter) on the same goals and user noise: "
+            "W / L = trials it succeeded where RT-V3 failed / the reverse:\n\n"
+            "| User | Method | paired trials | W / L vs RT-V3 | McNemar p |\n|---|---|---:|---:|---:|\n")
+    for s, v in rows:
+        paired, p = _paired_text(v)
+        text += f"| {s['user']} | {method_label(s['method'])} | {v['paired_trials']} | {paired} | {p} |\n"
+    return text
 
 
 def _by_check_markdown(summary: Sequence[dict[str, Any]],
@@ -191,7 +216,8 @@ def write_summaries(output: Path, users: Sequence[str] | None = None,
     if goal_rule == "all":
         checks = {(int(g["scene_seed"]), int(g["grasp_index"])): g["check"] for g in goals}
         by_check = success_by_goal_check(rows, checks)
-    (output / "summary.md").write_text(summary_markdown(summary, goal_counts(goals), goal_rule, by_check))
+    versus_rtv3 = paired_with_baseline(rows, baseline="rtv3")
+    (output / "summary.md").write_text(summary_markdown(summary, goal_counts(goals), goal_rule, by_check, versus_rtv3))
     if summary:
         plot_success_rates(summary, output / "success_rates.png")
     return summary

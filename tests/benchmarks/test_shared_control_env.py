@@ -14,7 +14,12 @@ from rtv3_maniskill.benchmarks.shared_merge import merge_runs
 from rtv3_maniskill.benchmarks.shared_report import summary_markdown
 from rtv3_maniskill.benchmarks.shared_results import results_store
 from rtv3_maniskill.benchmarks.shared_runner import run_benchmark
-from rtv3_maniskill.benchmarks.shared_statistics import oracle_gain_share, success_by_goal_check, summarize
+from rtv3_maniskill.benchmarks.shared_statistics import (
+    oracle_gain_share,
+    paired_with_baseline,
+    success_by_goal_check,
+    summarize,
+)
 from rtv3_maniskill.policies.rtv3 import load_policy
 from rtv3_maniskill.policies.rtv3.configuration_rtv3 import RTV3Config
 from rtv3_maniskill.policies.rtv3.modeling_rtv3 import RTV3Policy
@@ -233,6 +238,24 @@ def test_methods_are_paired_with_direct_and_tested_by_exact_mcnemar():
             by_method["oracle+neoss"]["losses"]) == (10, 0, 0)
     assert (by_method["oracle"]["wins"], by_method["oracle"]["losses"]) == (8, 2)
 
+
+def test_summary_pairs_each_method_with_rtv3_when_it_ran():
+    # 6 goals: the copilot succeeds on goals 0-2, RT-V3 on goals 2-5 -> copilot W / L vs RT-V3 = 2 / 3;
+    # behind NeoSS the copilot is paired with RT-V3 behind NeoSS, never with the unfiltered RT-V3.
+    def row(g, method, ok):
+        return dict(scene_seed=1, grasp_index=g, user="noisy", method=method, outcome="success" if ok else "timeout",
+                    success=int(ok), collision=0, steps=50 if ok else 150)
+
+    rows = [row(g, "copilot", g < 3) for g in range(6)] + [row(g, "rtv3", g >= 2) for g in range(6)]
+    rows += [row(g, "copilot+neoss", True) for g in range(6)] + [row(g, "rtv3+neoss", g == 0) for g in range(6)]
+    versus = paired_with_baseline(rows, baseline="rtv3")
+    assert set(versus) == {("noisy", "copilot"), ("noisy", "copilot+neoss")}
+    assert (versus[("noisy", "copilot")]["wins"], versus[("noisy", "copilot")]["losses"]) == (2, 3)
+    assert (versus[("noisy", "copilot+neoss")]["wins"], versus[("noisy", "copilot+neoss")]["losses"]) == (5, 0)
+    text = summary_markdown(summarize(rows), versus_rtv3=versus)
+    assert "| noisy | Copilot | 6 | 2 / 3 | 1 |" in text
+    assert "| noisy | Copilot w. NeoSS | 6 | 5 / 0 | 0.0625 |" in text
+    assert "paired with RT-V3" not in summary_markdown(summarize(rows))  # nothing to pair with: no section
 
 def test_share_of_the_oracles_gain_is_computed_on_the_goals_all_three_ran():
     # 20 goals: Direct succeeds on 10, the oracle on 18, RT-V3 on 14 -> share (14 - 10) / (18 - 10) = 50 %.
