@@ -20,6 +20,8 @@
 # last checkpoint, a finished evaluation is kept) and is skipped when its output is complete. Run it
 # from a git worktree at a fixed commit so that work on main cannot change a running job:
 #   git worktree add ../rtv3-paper-prior HEAD && cd ../rtv3-paper-prior && nohup bash scripts/train_paper_prior.sh &
+# Started in a session of its own (setsid), `nice` does not make it yield to other work on Linux's
+# per-session scheduling (autogroups); lower its whole session instead: echo 19 > /proc/PID/autogroup.
 # Environment: CHUNK_SCENES, ROUNDS, DAGGER_SCENES, STEPS0, STEPS, LONG_STEPS, BATCH, WORKERS, EVAL_SCENES,
 # CLEARANCE, DEVICE (cpu or cuda), OUT trade time for quality; MIN_FREE_GB (20) stops it before the disk fills
 # (each stage's compact cache is removed once the stage is trained).
