@@ -7,10 +7,11 @@
 #      around the ready pose as the authors do, free-space clearance CLEARANCE (chosen by
 #      the pilot in docs/RESULTS.md); after each chunk the prior trains on every chunk so far through the
 #      compact cache (chunk 1: from scratch, STEPS0 steps; then STEPS more from the previous stage);
-#   2. ROUNDS DAgger rounds (seed blocks 51, 52, ...), each from the stage before: that prior rolls out
-#      alone and under RT-V3 (the preset's fusion) with the noisy and single-DoF users, the planner
-#      re-plans from the visited states (most from the last second of failed rollouts), and the prior
-#      trains STEPS more steps on every demonstration and relabel so far;
+#   2. a DAgger round after each chunk named in DAGGER_AFTER (rounds 1, 2, ... in seed blocks 51, 52, ...),
+#      from the stage before: that prior rolls out alone and under RT-V3 (the preset's fusion) with the
+#      noisy and single-DoF users, the planner re-plans from the visited states (most from the last second
+#      of failed rollouts), and the prior trains STEPS more steps on every demonstration and relabel so far
+#      (rounds between the chunks: more demonstrations alone left the validation SR flat, docs/RESULTS.md);
 #   3. a last stage, LONG_STEPS more steps on every demonstration and relabel;
 #   4. every stage is evaluated on the validation block (rtv3 evaluate planning --preset paper --seed 8,
 #      EVAL_SCENES scenes, never the test block 9) and added to OUT/curve.csv and OUT/curve.png
@@ -22,13 +23,13 @@
 #   git worktree add ../rtv3-paper-prior HEAD && cd ../rtv3-paper-prior && nohup bash scripts/train_paper_prior.sh &
 # Started in a session of its own (setsid), `nice` does not make it yield to other work on Linux's
 # per-session scheduling (autogroups); lower its whole session instead: echo 19 > /proc/PID/autogroup.
-# Environment: CHUNK_SCENES, ROUNDS, DAGGER_SCENES, STEPS0, STEPS, LONG_STEPS, BATCH, WORKERS, EVAL_SCENES,
+# Environment: CHUNK_SCENES, DAGGER_AFTER, DAGGER_SCENES, STEPS0, STEPS, LONG_STEPS, BATCH, WORKERS, EVAL_SCENES,
 # CLEARANCE, DEVICE (cpu or cuda), OUT trade time for quality; MIN_FREE_GB (20) stops it before the disk fills
 # (each stage's compact cache is removed once the stage is trained).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 CHUNK_SCENES=${CHUNK_SCENES:-200 300 500 1000 1000}
-ROUNDS=${ROUNDS:-3}
+DAGGER_AFTER=${DAGGER_AFTER:-2 3 4}
 DAGGER_SCENES=${DAGGER_SCENES:-300}
 STEPS0=${STEPS0:-6000}
 STEPS=${STEPS:-4000}
@@ -92,9 +93,24 @@ generated() {  # FOLDER SCENES: whether rtv3 generate has finished SCENES scenes
       'import json, sys; print(json.load(open(sys.argv[1]))["scenes"])' "$1/rtv3_summary.json") >= $2 ))
 }
 
+dagger_round() {  # R: relabels from the current prior's rollouts, then a stage on everything so far
+  local r=$1 relabels=data/paper_prior/dagger_$1
+  if [[ ! -f $relabels/rtv3_summary.json ]]; then
+    enough_disk
+    $rtv3 dagger --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
+        --policy.path "$prior" --output "$relabels" --num-scenes "$DAGGER_SCENES" --seed $((50 + r)) \
+        --drivers prior,rtv3:noisy,rtv3:single_dof,prior --targets-per-scene 8 --relabels-per-rollout 1 \
+        --failure-relabels 4 --workers "$WORKERS"
+  fi
+  datasets+=("$relabels")
+  stage "dagger_$r" "$prior" "$STEPS" 3e-4 "${datasets[@]}"
+  prior=$OUT/dagger_$r/run/checkpoints/last
+}
+
 datasets=()
 prior=fresh
 c=0
+r=0
 for scenes in $CHUNK_SCENES; do
   c=$((c + 1))
   chunk=data/paper_prior/demos_$c
@@ -111,19 +127,9 @@ for scenes in $CHUNK_SCENES; do
     stage "demos_$c" "$prior" "$STEPS" 3e-4 "${datasets[@]}"
   fi
   prior=$OUT/demos_$c/run/checkpoints/last
-done
-for ((r = 1; r <= ROUNDS; r++)); do
-  relabels=data/paper_prior/dagger_$r
-  if [[ ! -f $relabels/rtv3_summary.json ]]; then
-    enough_disk
-    $rtv3 dagger --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
-        --policy.path "$prior" --output "$relabels" --num-scenes "$DAGGER_SCENES" --seed $((50 + r)) \
-        --drivers prior,rtv3:noisy,rtv3:single_dof,prior --targets-per-scene 8 --relabels-per-rollout 1 \
-        --failure-relabels 4 --workers "$WORKERS"
-  fi
-  datasets+=("$relabels")
-  stage "dagger_$r" "$prior" "$STEPS" 3e-4 "${datasets[@]}"
-  prior=$OUT/dagger_$r/run/checkpoints/last
+  for after in $DAGGER_AFTER; do
+    if (( after == c )); then r=$((r + 1)); dagger_round "$r"; fi
+  done
 done
 # Then LONG_STEPS more on everything: the stages above add STEPS each, which may leave the prior short of
 # steps rather than of data (the curve flattened while the data grew tenfold).

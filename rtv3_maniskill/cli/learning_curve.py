@@ -18,7 +18,6 @@ from pathlib import Path
 from safetensors import safe_open
 
 STAGE = re.compile(r"^(?:(demos|dagger)_(\d+)|long)$")
-KINDS = ("demos", "dagger", "long")  # the order the recipe trains them in
 FIELDS = ("stage", "trajectories", "frames", "model_step", "trials", "SR", "CR", "TOR")
 
 
@@ -28,7 +27,8 @@ def _model_step(weights: Path) -> int:
 
 
 def stages(out: Path) -> list[dict]:
-    """One row per evaluated stage, in training order (demonstration chunks, DAgger rounds, the long stage)."""
+    """One row per evaluated stage, in training order: each stage trains on every dataset so far, from the one
+    before, so the order is that of (trajectories seen, model step), however chunks and DAgger rounds interleave."""
     found = []
     for folder in out.iterdir():
         match = STAGE.match(folder.name)
@@ -37,13 +37,12 @@ def stages(out: Path) -> list[dict]:
             continue
         cache = json.loads((folder / "cache" / "summary.json").read_text())
         plan = json.loads(planning.read_text())
-        kind, number = (match[1], int(match[2])) if match[1] else ("long", 0)
-        found.append(((KINDS.index(kind), number), dict(
+        found.append(dict(
             stage=folder.name, trajectories=cache["episodes"], frames=cache["frames"],
             model_step=_model_step(folder / "run" / "checkpoints" / "last" / "model.safetensors"),
             trials=plan["trials"], SR=plan["SR"], CR=plan["CR"], TOR=plan["TOR"],
-            checkpoint=str(folder / "run" / "checkpoints" / "last"))))
-    return [row for _, row in sorted(found, key=lambda item: item[0])]
+            checkpoint=str(folder / "run" / "checkpoints" / "last")))
+    return sorted(found, key=lambda row: (row["trajectories"], row["model_step"]))
 
 
 def plot(rows: list[dict], path: Path) -> None:

@@ -23,16 +23,18 @@ def _stage(out, name, episodes, step, sr, cr):
 
 
 def test_stages_in_training_order_and_the_best_by_sr_then_fewer_collisions(tmp_path, capsys):
-    _stage(tmp_path, "long", 9000, 30000, 0.79, 0.10)
+    _stage(tmp_path, "long", 10000, 30000, 0.79, 0.10)
     _stage(tmp_path, "dagger_1", 9000, 14000, 0.80, 0.10)
     _stage(tmp_path, "demos_10", 8000, 12000, 0.80, 0.08)
     _stage(tmp_path, "demos_2", 5000, 10000, 0.745, 0.15)
+    _stage(tmp_path, "dagger_2", 9500, 16000, 0.70, 0.12)  # a round after a later chunk
+    _stage(tmp_path, "demos_11", 10000, 18000, 0.70, 0.12)
     (tmp_path / "demos_3").mkdir()  # not evaluated yet: left out
     assert main(["learning-curve", str(tmp_path)]) == 0
     with open(tmp_path / "curve.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert [r["stage"] for r in rows] == ["demos_2", "demos_10", "dagger_1", "long"]
-    assert [r["model_step"] for r in rows] == ["10000", "12000", "14000", "30000"]
+    assert [r["stage"] for r in rows] == ["demos_2", "demos_10", "dagger_1", "dagger_2", "demos_11", "long"]
+    assert [r["model_step"] for r in rows] == ["10000", "12000", "14000", "16000", "18000", "30000"]
     assert (tmp_path / "curve.png").stat().st_size > 0
     capsys.readouterr()
     assert main(["learning-curve", str(tmp_path), "--best"]) == 0
