@@ -17,7 +17,7 @@ from pathlib import Path
 
 from safetensors import safe_open
 
-STAGE = re.compile(r"^(?:(demos|dagger)_(\d+)|long)$")
+STAGE = re.compile(r"^(?:(?:demos|dagger)_\d+|long)$")
 FIELDS = ("stage", "trajectories", "frames", "model_step", "trials", "SR", "CR", "TOR")
 
 
@@ -31,9 +31,8 @@ def stages(out: Path) -> list[dict]:
     before, so the order is that of (trajectories seen, model step), however chunks and DAgger rounds interleave."""
     found = []
     for folder in out.iterdir():
-        match = STAGE.match(folder.name)
         planning = folder / "planning" / "planning_summary.json"
-        if match is None or not planning.is_file():
+        if not STAGE.match(folder.name) or not planning.is_file():
             continue
         cache = json.loads((folder / "cache" / "summary.json").read_text())
         plan = json.loads(planning.read_text())
