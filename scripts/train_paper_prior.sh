@@ -13,10 +13,13 @@
 #      of failed rollouts), and the prior trains STEPS more steps on every demonstration and relabel so far
 #      (rounds between the chunks: more demonstrations alone left the validation SR flat, docs/RESULTS.md);
 #   3. a last stage, LONG_STEPS more steps on every demonstration and relabel;
-#   4. every stage is evaluated on the validation block (rtv3 evaluate planning --preset paper --seed 8,
-#      EVAL_SCENES scenes, never the test block 9) and added to OUT/curve.csv and OUT/curve.png
-#      (validation SR / CR against trajectories seen); the stage with the best validation SR is copied
-#      to OUT/final.
+#   4. every stage is evaluated on the validation block (seed 8, never the test block 9): planning
+#      (rtv3 evaluate planning --preset paper, EVAL_SCENES scenes) and RT-V3 with the noisy and single-DoF
+#      users (rtv3 benchmark-shared --preset paper, SHARED_SCENES scenes, 8 goals each), as is the shipped
+#      prior once (OUT/reference, with Direct beside it); rtv3 learning-curve adds each stage to
+#      OUT/curve.csv and OUT/curve.png (validation SRs against trajectories seen, wins / losses against
+#      the shipped prior on the same trials); the stage with the best mean validation SR is copied to
+#      OUT/final.
 # Every step resumes when rerun (generation and DAgger skip finished scenes, training goes on from its
 # last checkpoint, a finished evaluation is kept) and is skipped when its output is complete. Run it
 # from a git worktree at a fixed commit so that work on main cannot change a running job:
@@ -24,6 +27,7 @@
 # Started in a session of its own (setsid), `nice` does not make it yield to other work on Linux's
 # per-session scheduling (autogroups); lower its whole session instead: echo 19 > /proc/PID/autogroup.
 # Environment: CHUNK_SCENES, DAGGER_AFTER, DAGGER_SCENES, STEPS0, STEPS, LONG_STEPS, BATCH, WORKERS, EVAL_SCENES,
+# SHARED_SCENES,
 # CLEARANCE, DEVICE (cpu or cuda), OUT trade time for quality; MIN_FREE_GB (20) stops it before the disk fills
 # (each stage's compact cache is removed once the stage is trained).
 set -euo pipefail
@@ -38,6 +42,7 @@ MIN_FREE_GB=${MIN_FREE_GB:-20}
 BATCH=${BATCH:-64}
 WORKERS=${WORKERS:-2}
 EVAL_SCENES=${EVAL_SCENES:-100}
+SHARED_SCENES=${SHARED_SCENES:-20}
 CLEARANCE=${CLEARANCE:-0.03}
 DEVICE=${DEVICE:-cpu}
 OUT=${OUT:-outputs/paper_prior}
@@ -75,9 +80,17 @@ stage() {  # NAME INIT(fresh|checkpoint) STEPS LR DATASETS... -> OUT/NAME/run/ch
   fi
   # Each stage builds its own cache of every dataset so far: once trained, only its summary is kept.
   for f in "$dir"/cache/*; do [[ $f == */summary.json ]] || rm -rf "$f"; done
-  [[ -f $dir/planning/planning_summary.json ]] || $rtv3 evaluate planning --preset paper --seed 8 \
-      --scenes "$EVAL_SCENES" --policy.path "$dir/run/checkpoints/last" --output "$dir/planning"
+  validate "$dir/run/checkpoints/last" "$dir" rtv3
   $rtv3 learning-curve "$OUT"
+}
+
+validate() {  # CHECKPOINT DIR METHODS: the validation block's planning trials and shared-control rows
+  local checkpoint=$1 dir=$2 methods=$3
+  [[ -f $dir/planning/planning_summary.json ]] || $rtv3 evaluate planning --preset paper --seed 8 \
+      --scenes "$EVAL_SCENES" --policy.path "$checkpoint" --output "$dir/planning"
+  [[ -f $dir/shared/summary.csv ]] || $rtv3 benchmark-shared --preset paper --seed 8 --scenes "$SHARED_SCENES" \
+      --goals-per-scene 8 --users noisy,single_dof --methods "$methods" --policy.path "$checkpoint" \
+      --workers "$WORKERS" --output "$dir/shared"
 }
 
 enough_disk() {  # stop (resumably) before the disk fills: MIN_FREE_GB must stay free for everything else
@@ -107,6 +120,8 @@ dagger_round() {  # R: relabels from the current prior's rollouts, then a stage 
   prior=$OUT/dagger_$r/run/checkpoints/last
 }
 
+# The prior to beat: the shipped checkpoint on the same validation trials, with Direct beside RT-V3.
+validate rtv3_maniskill/checkpoints/rtv3_grasp_clutter "$OUT/reference" direct,rtv3
 datasets=()
 prior=fresh
 c=0
