@@ -27,8 +27,7 @@
 # Started in a session of its own (setsid), `nice` does not make it yield to other work on Linux's
 # per-session scheduling (autogroups); lower its whole session instead: echo 19 > /proc/PID/autogroup.
 # Environment: CHUNK_SCENES, DAGGER_AFTER, DAGGER_SCENES, STEPS0, STEPS, LONG_STEPS, BATCH, WORKERS, EVAL_SCENES,
-# SHARED_SCENES,
-# CLEARANCE, DEVICE (cpu or cuda), OUT trade time for quality; MIN_FREE_GB (20) stops it before the disk fills
+# SHARED_SCENES, CLEARANCE, DEVICE (cpu or cuda), OUT trade time for quality; MIN_FREE_GB (20) stops it before the disk fills
 # (each stage's compact cache is removed once the stage is trained).
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -44,14 +44,13 @@ def _success_rate(rows: list[dict], user: str) -> float | None:
     return sum(r["outcome"] == "success" for r in trials) / len(trials) if trials else None
 
 
-def _shared(folder: Path, reference: Path) -> dict:
-    """RT-V3 SR per user of a finished ``benchmark-shared`` run, and wins / losses against the reference's RT-V3."""
+def _shared(folder: Path, reference: list[dict]) -> dict:
+    """RT-V3 SR per user of a finished ``benchmark-shared`` run, and wins / losses against ``reference``: the
+    reference's RT-V3 trials, named ``"reference"`` (none: no pairing)."""
     if not (folder / "summary.csv").is_file():
         return {}
     rows = _rows(folder, "rtv3", "stage")
-    paired = {}
-    if (reference / "summary.csv").is_file():
-        paired = shared_statistics.paired_with_baseline(rows + _rows(reference, "rtv3", "reference"), "reference")
+    paired = shared_statistics.paired_with_baseline(rows + reference, "reference") if reference else {}
     out = {}
     for user in USERS:
         if (sr := _success_rate(rows, user)) is not None:
@@ -65,6 +64,8 @@ def stages(out: Path) -> list[dict]:
     """One row per evaluated stage, in training order: each stage trains on every dataset so far, from the one
     before, so the order is that of (trajectories seen, model step), however chunks and DAgger rounds interleave."""
     reference = out / "reference"
+    finished = (reference / "shared" / "summary.csv").is_file()
+    reference_rtv3 = _rows(reference / "shared", "rtv3", "reference") if finished else []
     found = []
     for folder in out.iterdir():
         planning = folder / "planning"
@@ -80,7 +81,7 @@ def stages(out: Path) -> list[dict]:
             paired = planning_records.paired_with_baseline(
                 planning_records.read_trials(planning / "planning_trials.csv"), reference / "planning")
             row.update(wins=paired["wins"], losses=paired["losses"])
-        row.update(_shared(folder / "shared", reference / "shared"))
+        row.update(_shared(folder / "shared", reference_rtv3))
         found.append(row)
     return sorted(found, key=lambda row: (row["trajectories"], row["model_step"]))
 
@@ -123,14 +124,14 @@ def plot(rows: list[dict], lines: dict[str, float], path: Path) -> None:
         points = [(xi, 100 * r[key]) for xi, r in zip(x, rows) if key in r]
         if points:
             ax.plot(*zip(*points), style, color=color, label=label)
-    for key, label, color in (("planning", "reference", "C0"), ("rtv3_noisy", None, "C1"),
-                              ("rtv3_single_dof", None, "C2")):
+    reference_style = dict(ls=":", lw=1)
+    direct_style = dict(ls="-.", lw=0.8, alpha=0.6)
+    for key, color, style, label in (
+            ("planning", "C0", reference_style, "reference prior (dotted)"),
+            ("rtv3_noisy", "C1", reference_style, None), ("rtv3_single_dof", "C2", reference_style, None),
+            ("direct_noisy", "C1", direct_style, "Direct (dash-dot)"), ("direct_single_dof", "C2", direct_style, None)):
         if key in lines:
-            ax.axhline(100 * lines[key], color=color, ls=":", lw=1, label=label and "reference prior (dotted)")
-    for key, color in (("direct_noisy", "C1"), ("direct_single_dof", "C2")):
-        if key in lines:
-            ax.axhline(100 * lines[key], color=color, ls="-.", lw=0.8, alpha=0.6,
-                       label="Direct (dash-dot)" if key == "direct_noisy" else None)
+            ax.axhline(100 * lines[key], color=color, label=label, **style)
     for r in rows:
         ax.annotate(r["stage"], (r["trajectories"], 100 * r["SR"]), fontsize=7, xytext=(3, 4),
                     textcoords="offset points")
