@@ -25,8 +25,10 @@ STAGE = re.compile(r"^(?:(?:demos|dagger)_\d+|long)$")
 USERS = ("noisy", "single_dof")
 """The simulated users of the RT-V3 validation rows."""
 FIELDS = ("stage", "trajectories", "frames", "model_step", "trials", "SR", "CR", "TOR", "wins", "losses",
+          "reachable_trials", "reachable_SR",
           *(f"{user}_{column}" for user in USERS for column in ("SR", "wins", "losses")))
-"""Columns of ``curve.csv``: rates are fractions; ``wins`` / ``losses`` are paired with ``OUT/reference``."""
+"""Columns of ``curve.csv``: rates are fractions; ``wins`` / ``losses`` are paired with ``OUT/reference``;
+``reachable_*``: the planning trials whose target the arm can reach (empty for runs made before the check)."""
 
 
 def _model_step(weights: Path) -> int:
@@ -77,6 +79,8 @@ def stages(out: Path) -> list[dict]:
                    model_step=_model_step(folder / "run" / "checkpoints" / "last" / "model.safetensors"),
                    trials=plan["trials"], SR=plan["SR"], CR=plan["CR"], TOR=plan["TOR"],
                    checkpoint=str(folder / "run" / "checkpoints" / "last"))
+        if "arm_reachable" in plan:
+            row.update(reachable_trials=plan["arm_reachable"]["trials"], reachable_SR=plan["arm_reachable"]["SR"])
         if all((f / "planning_trials.csv").is_file() for f in (planning, reference / "planning")):
             paired = planning_records.paired_with_baseline(
                 planning_records.read_trials(planning / "planning_trials.csv"), reference / "planning")

@@ -24,6 +24,10 @@ Protocol:
   (the paper's pose distance with rotation weight 0.3/pi, docs/PAPER_DETAILS.md "Metrics"), else
   ``timeout`` after 150 steps (7.5 s). Trials without a collision-free start pose are logged
   as ``no_start_pose`` and left out of the rates.
+* arm reach: each target is also checked as ``rtv3 benchmark-shared`` checks goals
+  (:func:`~rtv3_maniskill.benchmarks.goals.check_goal`: a collision-free IK solution at the pre-grasp,
+  then a straight 5 cm approach); every target is run, and the summary adds the rates on the targets
+  that pass (``arm_reachable``), the set the authors' targets came from (their planner's demonstrations).
 
 The success rule is :mod:`~rtv3_maniskill.benchmarks.planning_success`, the records
 :mod:`~rtv3_maniskill.benchmarks.planning_records`, the NeoSS command
@@ -49,10 +53,13 @@ import torch
 from tqdm import tqdm
 
 from rtv3_maniskill import ENV_ID, features
+from rtv3_maniskill.benchmarks.goals import check_goal
 from rtv3_maniskill.benchmarks.outcomes import describe_contact, trial_outcome
 from rtv3_maniskill.benchmarks.planning_records import (
     NO_START_POSE,
+    by_goal_check,
     check_baseline,
+    goals_store,
     paired_with_baseline,
     scene_index,
     summarize,
@@ -69,6 +76,7 @@ from rtv3_maniskill.policies.rtv3.checkpoints import load_policy, resolve_checkp
 from rtv3_maniskill.records import SCENE_SEED_STRIDE, claim_folder, scene_seeds, select_targets
 from rtv3_maniskill.robot.neo_qp import NeoSafetyFilter
 from rtv3_maniskill.robot.planner import PandaPlanner
+from rtv3_maniskill.robot.scene_geometry import READY_QPOS
 from rtv3_maniskill.robot.starts import random_start_configuration
 
 PLANNING_MAX_STEPS = 150
@@ -215,6 +223,13 @@ class PlanningBenchmark:
         observation[features.GRASPS_MASK] = context_mask(observation[features.GRASPS_MASK], target, self.config.context)
         return observation
 
+    def goal_check(self, grasp: int) -> str:
+        """The arm-reach check of grasp ``grasp`` of the loaded scene (``benchmarks.goals.GOAL_CHECKS``), seeded
+        as ``rtv3 benchmark-shared`` seeds it."""
+        grasp_set = self.base.grasp_sets[0]
+        return check_goal(self.planner, np.asarray(grasp_set.poses[grasp]), int(grasp_set.object_ids[grasp]),
+                          self.planner.forward_kinematics(READY_QPOS), seed=int(self.scene_seed) * 1009 + grasp)
+
     def start_configuration(self, grasp: int, context_poses: torch.Tensor) -> tuple[np.ndarray | None, int]:
         """Collision-free start joints for the trial and the attempts it took (None if none was found).
 
@@ -318,6 +333,7 @@ def _run_claimed(config: PlanningConfig, policy: Any, progress: bool, baseline: 
     output.mkdir(parents=True, exist_ok=True)
     trials = trials_store(output, settings)
     scenes = scene_index(output, settings)
+    goals = goals_store(output, settings)
     bench = PlanningBenchmark(config, policy)
     keys: list[tuple[int, int]] = []
     per_scene = config.max_grasps_per_scene or MAX_GRASPS_GUESS
@@ -335,9 +351,12 @@ def _run_claimed(config: PlanningConfig, policy: Any, progress: bool, baseline: 
             bar.refresh()
             for g in targets:
                 keys.append((scene_seed, g))
-                if (scene_seed, g) not in trials:
-                    if bench.scene_seed != scene_seed:
-                        bench.load_scene(scene_seed)
+                key = (scene_seed, g)
+                if (key not in goals or key not in trials) and bench.scene_seed != scene_seed:
+                    bench.load_scene(scene_seed)
+                if key not in goals:
+                    goals.append(dict(scene_seed=scene_seed, grasp_index=g, goal=bench.goal_check(g)))
+                if key not in trials:
                     trials.append(bench.run_trial(g))
                 bar.update(1)
                 stats = summarize(trials.get(k) for k in keys)
@@ -347,8 +366,11 @@ def _run_claimed(config: PlanningConfig, policy: Any, progress: bool, baseline: 
         bar.close()
         trials.close()
         scenes.close()
+        goals.close()
         bench.close()
     summary = summarize(trials.get(k) for k in keys)
+    goal_of = {k: goals.get(k)["goal"] for k in keys}
+    summary.update(by_goal_check((trials.get(k) for k in keys), goal_of))
     summary.update(
         scenes=config.scenes,
         scene_seed_range=[config.seed * SCENE_SEED_STRIDE, config.seed * SCENE_SEED_STRIDE + config.scenes - 1],

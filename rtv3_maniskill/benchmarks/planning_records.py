@@ -1,8 +1,9 @@
 """The planning benchmark's records: ``planning_trials.csv`` (one row per trial), ``planning_scenes.csv``
-(the valid grasps of each scene built), the SR / CR / TOR summary of trial rows, and the paired
-comparison of two runs on the trials both ran (two checkpoints on one validation block).
+(the valid grasps of each scene built), ``planning_goals.csv`` (the arm-reach check of each target), the
+SR / CR / TOR summary of trial rows, and the paired comparison of two runs on the trials both ran (two
+checkpoints on one validation block).
 
-A resumed run reads both files back (torn or foreign rows are skipped) and must use the same
+A resumed run reads the files back (torn or foreign rows are skipped) and must use the same
 settings (``planning_config.json``).
 """
 
@@ -26,6 +27,8 @@ TRIAL_FIELDS = (
     "reached_grasp", "context_grasps", "start_attempts", "wall_time_s", "contact",
 )
 SCENE_FIELDS = ("scene_seed", "valid_grasps")
+GOAL_FIELDS = ("scene_seed", "grasp_index", "goal")
+"""``goal``: one of ``benchmarks.goals.GOAL_CHECKS`` for the trial's target."""
 
 
 def _is_complete_trial(row: dict[str, str]) -> bool:
@@ -126,6 +129,21 @@ def paired_with_baseline(rows: Iterable[dict[str, Any]], baseline: Path) -> dict
     return dict(baseline=str(baseline), paired_trials=len(shared), SR=sum(ran[k] for k in shared) / len(shared),
                 baseline_SR=sum(other[k] for k in shared) / len(shared), wins=wins, losses=losses,
                 mcnemar_p=mcnemar_exact(wins, losses))
+
+
+def goals_store(output: Path, settings: dict[str, Any]) -> RecordStore:
+    """``planning_goals.csv``: the arm-reach check (``benchmarks.goals.check_goal``) of every target so far."""
+    return RecordStore(output / "planning_goals.csv", GOAL_FIELDS, ("scene_seed", "grasp_index"), settings)
+
+
+def by_goal_check(rows: Iterable[dict[str, Any]], goals: dict[tuple[int, int], str]) -> dict[str, Any]:
+    """The targets per goal check (``goal_checks``) and :func:`summarize` of the trials whose target passes
+    the arm-reach check (``arm_reachable``: the arm can stand collision-free at its pre-grasp and move straight
+    in), the set the authors' planning targets came from. ``goals``: ``{(scene_seed, grasp_index): check}``."""
+    rows = list(rows)
+    checks = [goals[(int(r["scene_seed"]), int(r["grasp_index"]))] for r in rows]
+    return dict(goal_checks={c: checks.count(c) for c in sorted(set(checks))},
+                arm_reachable=summarize(r for r, c in zip(rows, checks) if c == "feasible"))
 
 
 def scene_index(output: Path, settings: dict[str, Any]) -> RecordStore:

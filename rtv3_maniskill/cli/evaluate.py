@@ -131,10 +131,13 @@ def _run_planning(args: argparse.Namespace) -> int:
         summary = run_planning_benchmark(config, baseline=args.compare_with)
     except (FileNotFoundError, ValueError) as err:
         raise SystemExit(f"error: {err}") from None
-    rates = "  ".join(
-        f"{k} {'n/a' if summary[k] is None else f'{100 * summary[k]:.1f} %'}" for k in ("SR", "CR", "TOR")
-    )
-    print(f"{summary['trials']} trials ({summary['no_start_pose']} without a start pose left out): {rates}")
+    def rates(stats: dict) -> str:
+        return "  ".join(f"{k} {'n/a' if stats[k] is None else f'{100 * stats[k]:.1f} %'}" for k in ("SR", "CR", "TOR"))
+
+    print(f"{summary['trials']} trials ({summary['no_start_pose']} without a start pose left out): {rates(summary)}")
+    reachable, checks = summary["arm_reachable"], summary["goal_checks"]
+    others = ", ".join(f"{n} {c}" for c, n in checks.items() if c != "feasible") or "none"
+    print(f"on the {reachable['trials']} trials whose target the arm can reach (others: {others}): {rates(reachable)}")
     shown = ("success", "collision", "timeout", "mean_steps_success", "collisions_with")
     print(json.dumps({k: summary[k] for k in shown}))
     if "paired_with" in summary:

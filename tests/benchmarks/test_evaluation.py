@@ -20,6 +20,7 @@ from rtv3_maniskill.benchmarks import (
     prediction,
     prediction_metrics,
 )
+from rtv3_maniskill.benchmarks.goals import GOAL_CHECKS
 from rtv3_maniskill.benchmarks.planning_success import is_planning_success, planning_distance
 from rtv3_maniskill.cli import main
 from rtv3_maniskill.twist_mixture import TwistMixture
@@ -234,9 +235,13 @@ def test_context_mask_keeps_only_the_target():
 # ----------------------------------------------------------------------------- planning: closed loop
 
 
-def _trial_rows(folder: Path) -> list[dict]:
-    with open(folder / "planning_trials.csv", newline="") as f:
+def _trial_rows(folder: Path, name: str = "planning_trials.csv") -> list[dict]:
+    with open(folder / name, newline="") as f:
         return list(csv.DictReader(f))
+
+
+def _goal_rows(folder: Path) -> list[dict]:
+    return _trial_rows(folder, "planning_goals.csv")
 
 
 @pytest.mark.sim
@@ -262,6 +267,17 @@ def test_planning_benchmark_runs_writes_and_resumes(untrained_policy, tmp_path, 
     assert (summary["paired_with"]["paired_trials"], summary["paired_with"]["wins"]) == (1, 0)
     with pytest.raises(SystemExit, match="other settings"):
         main([*args[:-2], "--context", "all", "--output", str(out)])
+    # Every target carries the arm-reach check rtv3 benchmark-shared makes, and the summary splits on it; a
+    # folder written before the check existed gains it on a rerun, with no trial run again.
+    goal = _goal_rows(out)
+    assert [(g["scene_seed"], g["grasp_index"]) for g in goal] == [(r["scene_seed"], r["grasp_index"]) for r in rows]
+    assert goal[0]["goal"] in GOAL_CHECKS and summary["goal_checks"] == {goal[0]["goal"]: 1}
+    assert summary["arm_reachable"]["trials"] == (goal[0]["goal"] == "feasible")
+    (out / "planning_goals.csv").unlink()
+    (out / "planning_goals.settings.json").unlink()
+    assert main(args) == 0
+    assert "whose target the arm can reach" in capsys.readouterr().out
+    assert _goal_rows(out) == goal and _trial_rows(out) == rows
 
 
 class _PreGraspOracle:
