@@ -59,7 +59,12 @@ def check_scene_goals(env_base, planner=None, seed: int = 0) -> list[str]:
     ``GraspClutter-v1`` env, unwrapped), in candidate order; padding rows are left out."""
     if planner is None:
         planner = PandaPlanner(env_base.layouts[0])
+    return [check_candidate(env_base, planner, i, seed) for i in range(len(env_base.grasp_sets[0].scores))]
+
+
+def check_candidate(env_base, planner, index: int, seed: int = 0) -> str:
+    """:func:`check_goal` for candidate ``index`` of the loaded scene of ``env_base``, from the ready pose,
+    its IK restarts seeded by ``seed`` (the scene's seed) and ``index``."""
     grasp_set = env_base.grasp_sets[0]
-    reference = planner.forward_kinematics(READY_QPOS)
-    return [check_goal(planner, grasp_set.poses[i], int(grasp_set.object_ids[i]), reference, seed=seed * 1009 + i)
-            for i in range(len(grasp_set.scores))]
+    return check_goal(planner, np.asarray(grasp_set.poses[index]), int(grasp_set.object_ids[index]),
+                      planner.forward_kinematics(READY_QPOS), seed=seed * 1009 + index)

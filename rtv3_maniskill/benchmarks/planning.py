@@ -53,7 +53,7 @@ import torch
 from tqdm import tqdm
 
 from rtv3_maniskill import ENV_ID, features
-from rtv3_maniskill.benchmarks.goals import check_goal
+from rtv3_maniskill.benchmarks.goals import check_candidate
 from rtv3_maniskill.benchmarks.outcomes import describe_contact, trial_outcome
 from rtv3_maniskill.benchmarks.planning_records import (
     NO_START_POSE,
@@ -76,7 +76,6 @@ from rtv3_maniskill.policies.rtv3.checkpoints import load_policy, resolve_checkp
 from rtv3_maniskill.records import SCENE_SEED_STRIDE, claim_folder, scene_seeds, select_targets
 from rtv3_maniskill.robot.neo_qp import NeoSafetyFilter
 from rtv3_maniskill.robot.planner import PandaPlanner
-from rtv3_maniskill.robot.scene_geometry import READY_QPOS
 from rtv3_maniskill.robot.starts import random_start_configuration
 
 PLANNING_MAX_STEPS = 150
@@ -226,9 +225,7 @@ class PlanningBenchmark:
     def goal_check(self, grasp: int) -> str:
         """The arm-reach check of grasp ``grasp`` of the loaded scene (``benchmarks.goals.GOAL_CHECKS``), seeded
         as ``rtv3 benchmark-shared`` seeds it."""
-        grasp_set = self.base.grasp_sets[0]
-        return check_goal(self.planner, np.asarray(grasp_set.poses[grasp]), int(grasp_set.object_ids[grasp]),
-                          self.planner.forward_kinematics(READY_QPOS), seed=int(self.scene_seed) * 1009 + grasp)
+        return check_candidate(self.base, self.planner, grasp, seed=int(self.scene_seed))
 
     def start_configuration(self, grasp: int, context_poses: torch.Tensor) -> tuple[np.ndarray | None, int]:
         """Collision-free start joints for the trial and the attempts it took (None if none was found).
@@ -350,8 +347,8 @@ def _run_claimed(config: PlanningConfig, policy: Any, progress: bool, baseline: 
             bar.total += len(targets) - per_scene  # the estimate made before the scene was known
             bar.refresh()
             for g in targets:
-                keys.append((scene_seed, g))
                 key = (scene_seed, g)
+                keys.append(key)
                 if (key not in goals or key not in trials) and bench.scene_seed != scene_seed:
                     bench.load_scene(scene_seed)
                 if key not in goals:
