@@ -352,7 +352,7 @@ def _run_claimed(config: PlanningConfig, policy: Any, progress: bool, baseline: 
                 if (key not in goals or key not in trials) and bench.scene_seed != scene_seed:
                     bench.load_scene(scene_seed)
                 if key not in goals:
-                    goals.append(dict(scene_seed=scene_seed, grasp_index=g, goal=bench.goal_check(g)))
+                    goals.append(dict(scene_seed=scene_seed, grasp_index=g, check=bench.goal_check(g)))
                 if key not in trials:
                     trials.append(bench.run_trial(g))
                 bar.update(1)
@@ -366,7 +366,7 @@ def _run_claimed(config: PlanningConfig, policy: Any, progress: bool, baseline: 
         goals.close()
         bench.close()
     summary = summarize(trials.get(k) for k in keys)
-    goal_of = {k: goals.get(k)["goal"] for k in keys}
+    goal_of = {k: goals.get(k)["check"] for k in keys}
     summary.update(by_goal_check((trials.get(k) for k in keys), goal_of))
     summary.update(
         scenes=config.scenes,

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from rtv3_maniskill.benchmarks.outcomes import CONTACT_KINDS, OUTCOMES
+from rtv3_maniskill.benchmarks.shared_results import GOAL_FIELDS
 from rtv3_maniskill.benchmarks.shared_statistics import mcnemar_exact
 from rtv3_maniskill.records import RecordStore
 
@@ -27,8 +28,6 @@ TRIAL_FIELDS = (
     "reached_grasp", "context_grasps", "start_attempts", "wall_time_s", "contact",
 )
 SCENE_FIELDS = ("scene_seed", "valid_grasps")
-GOAL_FIELDS = ("scene_seed", "grasp_index", "goal")
-"""``goal``: one of ``benchmarks.goals.GOAL_CHECKS`` for the trial's target."""
 
 
 def _is_complete_trial(row: dict[str, str]) -> bool:
@@ -132,7 +131,8 @@ def paired_with_baseline(rows: Iterable[dict[str, Any]], baseline: Path) -> dict
 
 
 def goals_store(output: Path, settings: dict[str, Any]) -> RecordStore:
-    """``planning_goals.csv``: the arm-reach check (``benchmarks.goals.check_goal``) of every target so far."""
+    """``planning_goals.csv``: the arm-reach check (``benchmarks.goals.check_goal``) of every target so far, in the
+    columns of ``benchmark-shared``'s ``goals.csv`` (``shared_results.GOAL_FIELDS``)."""
     return RecordStore(output / "planning_goals.csv", GOAL_FIELDS, ("scene_seed", "grasp_index"), settings)
 
 

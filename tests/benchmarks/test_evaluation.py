@@ -271,8 +271,8 @@ def test_planning_benchmark_runs_writes_and_resumes(untrained_policy, tmp_path, 
     # folder written before the check existed gains it on a rerun, with no trial run again.
     goal = _goal_rows(out)
     assert [(g["scene_seed"], g["grasp_index"]) for g in goal] == [(r["scene_seed"], r["grasp_index"]) for r in rows]
-    assert goal[0]["goal"] in GOAL_CHECKS and summary["goal_checks"] == {goal[0]["goal"]: 1}
-    assert summary["arm_reachable"]["trials"] == (goal[0]["goal"] == "feasible")
+    assert goal[0]["check"] in GOAL_CHECKS and summary["goal_checks"] == {goal[0]["check"]: 1}
+    assert summary["arm_reachable"]["trials"] == (goal[0]["check"] == "feasible")
     (out / "planning_goals.csv").unlink()
     (out / "planning_goals.settings.json").unlink()
     assert main(args) == 0
