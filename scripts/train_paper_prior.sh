@@ -9,8 +9,9 @@
 #      compact cache (chunk 1: from scratch, STEPS0 steps; then STEPS more from the previous stage);
 #   2. a DAgger round after each chunk named in DAGGER_AFTER (rounds 1, 2, ... in seed blocks 51, 52, ...),
 #      from the stage before: that prior rolls out alone and under RT-V3 (the preset's fusion) with the
-#      noisy and single-DoF users, the planner re-plans from the visited states (most from the last second
-#      of failed rollouts), and the prior trains STEPS more steps on every demonstration and relabel so far
+#      noisy and single-DoF users, the planner re-plans from the visited states (most from the second after
+#      a failed rollout's closest approach to the pre-grasp: from scratch the prior's failures are mostly
+#      runaways, whose last second lies far out of reach), and the prior trains STEPS more steps on every demonstration and relabel so far
 #      (rounds between the chunks: more demonstrations alone left the validation SR flat, docs/RESULTS.md);
 #   3. a last stage, LONG_STEPS more steps on every demonstration and relabel;
 #   4. every stage is evaluated on the validation block (seed 8, never the test block 9): planning
@@ -113,7 +114,7 @@ dagger_round() {  # R: relabels from the current prior's rollouts, then a stage 
     $rtv3 dagger --preset paper --objects "$OBJECTS" --clearance "$CLEARANCE" \
         --policy.path "$prior" --output "$relabels" --num-scenes "$DAGGER_SCENES" --seed $((50 + r)) \
         --drivers prior,rtv3:noisy,rtv3:single_dof,prior --targets-per-scene 8 --relabels-per-rollout 1 \
-        --failure-relabels 4 --workers "$WORKERS"
+        --failure-relabels 4 --failure-window drift --workers "$WORKERS"
   fi
   datasets+=("$relabels")
   stage "dagger_$r" "$prior" "$STEPS" 3e-4 "${datasets[@]}"

@@ -91,12 +91,16 @@ def stages(out: Path) -> list[dict]:
 
 
 def reference_lines(out: Path) -> dict[str, float]:
-    """The reference checkpoint's validation SRs (``planning``, ``rtv3_USER``) and Direct's (``direct_USER``),
+    """The reference checkpoint's validation SRs (``planning``, ``planning_reachable`` on the arm-reachable
+    targets, ``rtv3_USER``) and Direct's (``direct_USER``),
     as fractions, for the runs ``OUT/reference`` holds."""
     lines = {}
     summary = out / "reference" / "planning" / "planning_summary.json"
     if summary.is_file():
-        lines["planning"] = json.loads(summary.read_text())["SR"]
+        plan = json.loads(summary.read_text())
+        lines["planning"] = plan["SR"]
+        if "arm_reachable" in plan:
+            lines["planning_reachable"] = plan["arm_reachable"]["SR"]
     shared = out / "reference" / "shared"
     if (shared / "summary.csv").is_file():
         for method in ("rtv3", "direct"):
@@ -122,7 +126,8 @@ def plot(rows: list[dict], lines: dict[str, float], path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     x = [r["trajectories"] for r in rows]
-    curves = [("SR", "planning SR", "o-", "C0"), ("CR", "planning CR", "s--", "C3"),
+    curves = [("SR", "planning SR", "o-", "C0"), ("reachable_SR", "planning SR, arm-reachable targets", "o:", "C4"),
+              ("CR", "planning CR", "s--", "C3"),
               ("noisy_SR", "RT-V3 SR, noisy user", "^-", "C1"), ("single_dof_SR", "RT-V3 SR, single-DoF", "v-", "C2")]
     for key, label, style, color in curves:
         points = [(xi, 100 * r[key]) for xi, r in zip(x, rows) if key in r]
@@ -132,6 +137,7 @@ def plot(rows: list[dict], lines: dict[str, float], path: Path) -> None:
     direct_style = dict(ls="-.", lw=0.8, alpha=0.6)
     for key, color, style, label in (
             ("planning", "C0", reference_style, "reference prior (dotted)"),
+            ("planning_reachable", "C4", reference_style, None),
             ("rtv3_noisy", "C1", reference_style, None), ("rtv3_single_dof", "C2", reference_style, None),
             ("direct_noisy", "C1", direct_style, "Direct (dash-dot)"), ("direct_single_dof", "C2", direct_style, None)):
         if key in lines:

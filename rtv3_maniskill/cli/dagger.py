@@ -21,7 +21,7 @@ from rtv3_maniskill.cli.scene_args import (
     push_if_asked,
     resolve_scene_arguments,
 )
-from rtv3_maniskill.datagen.dagger_config import DEFAULT_DRIVERS, FAILURE_WINDOW_STEPS, DaggerConfig
+from rtv3_maniskill.datagen.dagger_config import DEFAULT_DRIVERS, FAILURE_WINDOW_STEPS, FAILURE_WINDOWS, DaggerConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,8 +36,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--targets-per-scene", type=int, default=4, help="targets per scene (0 = all)")
     parser.add_argument("--relabels-per-rollout", type=int, default=3, help="visited states re-planned per rollout")
     parser.add_argument("--failure-relabels", type=int, default=0,
-                        help=f"states re-planned from the last {FAILURE_WINDOW_STEPS} steps of a failed rollout "
-                             "instead (0: spread like the others)")
+                        help=f"states re-planned from {FAILURE_WINDOW_STEPS} steps of a failed rollout instead "
+                             "(0: spread like the others)")
+    parser.add_argument("--failure-window", choices=FAILURE_WINDOWS, default="last",
+                        help="where those steps lie: the rollout's last ones, or those from its closest approach "
+                             "to the pre-grasp on (drift: where a rollout that ran off turned away)")
     add_scene_arguments(parser)
     add_fusion_argument(parser)
     parser.add_argument("--plan-timeout", type=float, default=3.0, help="seconds per OMPL query")
@@ -58,7 +61,8 @@ def dagger_config(args: argparse.Namespace) -> DaggerConfig:
         output=args.output, policy_path=policy_path(args), scenes=args.num_scenes, seed=args.seed,
         drivers=tuple(d for d in args.drivers.split(",") if d.strip()),
         targets_per_scene=args.targets_per_scene or None, relabels_per_rollout=args.relabels_per_rollout,
-        failure_relabels=args.failure_relabels, scene_type=args.scene_type, objects=args.objects,
+        failure_relabels=args.failure_relabels, failure_window=args.failure_window,
+        scene_type=args.scene_type, objects=args.objects,
         execution=args.execution, self_contacts=args.self_contacts, fusion=fusion_name(args),
         plan_timeout=args.plan_timeout, clearance=args.clearance, workers=args.workers)
 

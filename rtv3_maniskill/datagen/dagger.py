@@ -78,18 +78,27 @@ class Rollout:
     """``"success"``, ``"collision"`` or ``"timeout"``."""
     steps: int = 0
     info: dict = field(default_factory=dict)
+    distances: np.ndarray | None = None
+    """``(S + 1,)`` pose distance of the TCP to the target's pre-grasp per state (shared-control weights)."""
 
 
 def relabel_steps(rollout: Rollout, count: int, min_step: int, rng: np.random.Generator,
-                  failure_count: int = 0) -> list[int]:
+                  failure_count: int = 0, failure_window: str = "last") -> list[int]:
     """Visited steps to re-plan from: ``count`` of ``min_step .. S`` (the state after a contact
     excluded), drawn one per equal stretch of the rollout so they spread over it; sorted.
-    With ``failure_count`` > 0, a failed rollout gets that many instead, spread over its last
-    :data:`FAILURE_WINDOW_STEPS` steps."""
+    With ``failure_count`` > 0, a failed rollout gets that many instead, spread over a window of
+    :data:`FAILURE_WINDOW_STEPS` steps: its last ones (``failure_window="last"``), or those from its
+    closest approach to the pre-grasp on (``"drift"``, which needs ``rollout.distances``)."""
     last = rollout.steps - (1 if rollout.outcome == "collision" else 0)
     candidates = np.arange(min_step, last + 1)
-    if failure_count > 0 and rollout.outcome != "success":
-        candidates, count = candidates[-FAILURE_WINDOW_STEPS:], failure_count
+    if failure_count > 0 and rollout.outcome != "success" and len(candidates):
+        end = last
+        if failure_window == "drift":
+            if rollout.distances is None:
+                raise ValueError("failure_window 'drift' needs the rollout's distances to the pre-grasp")
+            closest = min_step + int(np.argmin(rollout.distances[min_step : last + 1]))
+            end = min(closest + FAILURE_WINDOW_STEPS - 1, last)
+        candidates, count = candidates[candidates <= end][-FAILURE_WINDOW_STEPS:], failure_count
     if len(candidates) == 0:
         return []
     if len(candidates) <= count:
@@ -159,6 +168,7 @@ class DaggerCollector:
         if user is not None:
             user.reset(self.env.user_goal())
         states, qpos = [state_vector(obs)], [obs["agent"]["qpos"][0, :7].cpu().numpy()]
+        distances = [float(self.env.base.pregrasp_distance()[0])]
         outcome = "success" if bool(info["success"][0]) else "timeout"
         steps = 0
         while outcome != "success" and steps < self.config.max_steps:
@@ -173,13 +183,14 @@ class DaggerCollector:
             steps += 1
             states.append(state_vector(obs))
             qpos.append(obs["agent"]["qpos"][0, :7].cpu().numpy())
+            distances.append(float(self.env.base.pregrasp_distance()[0]))
             if bool(info["collision"][0]):
                 outcome = "collision"
                 break
             if bool(info["success"][0]):
                 outcome = "success"
         return Rollout(np.stack(states).astype(np.float32), np.stack(qpos).astype(np.float64), outcome, steps,
-                       dict(driver=driver, start=q0.tolist()))
+                       dict(driver=driver, start=q0.tolist()), np.asarray(distances))
 
     def relabel(self, rollout: Rollout, grasp: int, step: int, seed: int):
         """The expert's demonstration from visited step ``step`` (an ``Episode``), or a failure reason."""
@@ -238,7 +249,7 @@ def _run_scene(collector: DaggerCollector, job: tuple[int, int, list[str]]) -> d
         counts[f"rollout_{rollout.outcome}"] += 1
         rng = np.random.default_rng([config.seed, scene_seed, grasp, d])
         for step in relabel_steps(rollout, config.relabels_per_rollout, config.min_step, rng,
-                                  config.failure_relabels):
+                                  config.failure_relabels, config.failure_window):
             variant = rollout_variant(d, step)
             if StagingArea.key(scene_seed, grasp, variant) in done_keys:
                 continue

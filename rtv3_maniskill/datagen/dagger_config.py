@@ -16,7 +16,11 @@ DEFAULT_DRIVERS = ("prior", "rtv3:noisy", "direct:noisy", "rtv3:laggy", "rtv3:mo
                    "rtv3:single_dof", "direct:single_dof", "rtv3:low_dof")
 """The prior alone, and simulated users through RT-V3 (what the shared-control prior must read) and Direct."""
 FAILURE_WINDOW_STEPS = 20
-"""A failed rollout's ``failure_relabels`` come from its last 20 steps (1 s at 20 Hz)."""
+"""A failed rollout's ``failure_relabels`` come from a window of 20 steps (1 s at 20 Hz)."""
+FAILURE_WINDOWS = ("last", "drift")
+"""Where that window lies: ``"last"``, the rollout's last second (where it stalled or touched something);
+``"drift"``, the second from its closest approach to the pre-grasp (where it turned away: for a rollout
+that runs off, the states before it is far out of reach; the last second when it got closest at the end)."""
 
 
 def parse_driver(spec: str) -> tuple[str, str | None]:
@@ -53,7 +57,9 @@ class DaggerConfig:
         relabels_per_rollout: visited states re-planned per rollout (seeded, spread over the rollout).
         failure_relabels: 0, or the number of states re-planned from a failed rollout (contact or
             timeout) instead of ``relabels_per_rollout``, all from its last
-            :data:`FAILURE_WINDOW_STEPS` steps: where it went wrong, the recovery the expert shows.
+            :data:`FAILURE_WINDOW_STEPS` steps placed by ``failure_window``: where it went wrong, the
+            recovery the expert shows.
+        failure_window: one of :data:`FAILURE_WINDOWS`.
         min_step: earliest rollout step that is relabelled (step 0 is the start demonstrations cover).
         max_steps: rollout length limit (the benchmarks' 150).
         plan_timeout: seconds per OMPL query.
@@ -69,6 +75,7 @@ class DaggerConfig:
     targets_per_scene: int | None = 4
     relabels_per_rollout: int = 3
     failure_relabels: int = 0
+    failure_window: str = "last"
     min_step: int = 2
     max_steps: int = 150
     plan_timeout: float = 3.0
@@ -98,6 +105,8 @@ class DaggerConfig:
             raise ValueError(f"targets_per_scene must be >= 1 or None, got {self.targets_per_scene}")
         if self.failure_relabels < 0:
             raise ValueError(f"failure_relabels must be >= 0, got {self.failure_relabels}")
+        if self.failure_window not in FAILURE_WINDOWS:
+            raise ValueError(f"unknown failure_window {self.failure_window!r}: expected one of {FAILURE_WINDOWS}")
         with_clearance(self.clearance)  # a clear error for a bad distance
         if self.min_step < 1:
             raise ValueError(f"min_step must be >= 1, got {self.min_step}")
@@ -118,7 +127,8 @@ class DaggerConfig:
                     **({"execution": self.execution} if self.execution != "capped" else {}),
                     **({"self_contacts": self.self_contacts} if not self.self_contacts else {}),
                     **({"fusion": self.fusion} if self.fusion != "tuned" else {}),
-                    **({"clearance": self.clearance} if self.clearance != DEFAULT_CLEARANCE else {}))
+                    **({"clearance": self.clearance} if self.clearance != DEFAULT_CLEARANCE else {}),
+                    **({"failure_window": self.failure_window} if self.failure_window != "last" else {}))
 
 
-__all__ = ["DEFAULT_DRIVERS", "FAILURE_WINDOW_STEPS", "DaggerConfig", "parse_driver"]
+__all__ = ["DEFAULT_DRIVERS", "FAILURE_WINDOWS", "FAILURE_WINDOW_STEPS", "DaggerConfig", "parse_driver"]

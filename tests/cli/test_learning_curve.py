@@ -8,6 +8,7 @@ import json
 import torch
 from safetensors.torch import save_file
 
+from rtv3_maniskill.benchmarks.campaign_curve import reference_lines
 from rtv3_maniskill.benchmarks.planning_records import TRIAL_FIELDS
 from rtv3_maniskill.benchmarks.shared_results import RESULT_FIELDS
 from rtv3_maniskill.cli import main
@@ -97,6 +98,14 @@ def test_stages_are_paired_with_the_reference_and_the_best_counts_the_rtv3_rows(
     capsys.readouterr()
     assert main(["learning-curve", str(tmp_path), "--best"]) == 0
     assert capsys.readouterr().out.strip() == str(tmp_path / "dagger_1" / "run" / "checkpoints" / "last")
+
+
+def test_the_reference_lines_hold_its_rate_on_the_reachable_targets(tmp_path):
+    _planning(tmp_path / "reference" / "planning", successes=5)
+    assert reference_lines(tmp_path) == {"planning": 0.5}  # a run from before the arm-reach check
+    summary = tmp_path / "reference" / "planning" / "planning_summary.json"
+    summary.write_text(json.dumps(dict(json.loads(summary.read_text()), arm_reachable=dict(trials=8, SR=0.625))))
+    assert reference_lines(tmp_path) == {"planning": 0.5, "planning_reachable": 0.625}
 
 
 def test_a_folder_without_an_evaluated_stage_is_an_error(tmp_path):

@@ -51,6 +51,24 @@ def test_failure_relabels_come_from_the_last_second_of_a_failed_rollout():
     assert len(relabel_steps(success, 1, 2, np.random.default_rng(0), failure_count=5)) == 1
 
 
+def test_drift_window_starts_where_a_runaway_turned_away():
+    # closest to the pre-grasp at step 30, then running off until the time limit
+    distances = np.concatenate([np.linspace(1.0, 0.2, 31), np.linspace(0.25, 2.0, 120)])
+    runaway = Rollout(np.zeros((151, 27)), np.zeros((151, 7)), "timeout", steps=150, distances=distances)
+    steps = relabel_steps(runaway, 1, 2, np.random.default_rng(0), failure_count=4, failure_window="drift")
+    assert len(steps) == 4 and min(steps) >= 30 and max(steps) <= 30 + FAILURE_WINDOW_STEPS - 1
+    # the last-second window for the same rollout: far off already
+    assert min(relabel_steps(runaway, 1, 2, np.random.default_rng(0), 4, "last")) > 150 - FAILURE_WINDOW_STEPS
+    # a rollout that got closest at its end (a stall, a contact on the way in): the last second either way
+    stall = Rollout(np.zeros((151, 27)), np.zeros((151, 7)), "timeout", steps=150, distances=np.linspace(1, 0.1, 151))
+    assert min(relabel_steps(stall, 1, 2, np.random.default_rng(0), 4, "drift")) > 150 - FAILURE_WINDOW_STEPS
+    with pytest.raises(ValueError, match="distances"):
+        relabel_steps(Rollout(np.zeros((151, 27)), np.zeros((151, 7)), "timeout", steps=150), 1, 2,
+                      np.random.default_rng(0), 4, "drift")
+    with pytest.raises(ValueError, match="unknown failure_window 'middle'"):
+        DaggerConfig(output="d", failure_window="middle")
+
+
 def test_unknown_driver_names_the_known_ones(tmp_path):
     assert parse_driver("prior") == ("prior", None)
     assert parse_driver("RTV3:single-dof") == ("rtv3", "single_dof")
@@ -95,7 +113,8 @@ def test_relabelled_episode_keeps_the_rollout_history_and_the_experts_actions(tm
         assert goals, "the scene has feasible goals"
         rollout = collector.rollout(goals[0], "direct:ideal", seed=1)
         assert rollout.outcome == "success" and rollout.steps >= 12
-        assert len(rollout.states) == rollout.steps + 1
+        assert len(rollout.states) == len(rollout.distances) == rollout.steps + 1
+        assert rollout.distances[-1] < 0.5 * rollout.distances[0]  # the ideal user closes in on the pre-grasp
         step = 10
         episode = collector.relabel(rollout, goals[0], step, seed=2)
         assert not isinstance(episode, str), episode
