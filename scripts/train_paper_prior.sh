@@ -11,7 +11,8 @@
 #      from the stage before: that prior rolls out alone and under RT-V3 (the preset's fusion) with the
 #      noisy and single-DoF users, the planner re-plans from the visited states (most from the second after
 #      a failed rollout's closest approach to the pre-grasp: from scratch the prior's failures are mostly
-#      runaways, whose last second lies far out of reach), and the prior trains STEPS more steps on every demonstration and relabel so far
+#      runaways, whose last second lies far out of reach), and the prior trains STEPS more steps on every
+#      demonstration and relabel so far
 #      (rounds between the chunks: more demonstrations alone left the validation SR flat, docs/RESULTS.md);
 #   3. a last stage, LONG_STEPS more steps on every demonstration and relabel;
 #   4. every stage is evaluated on the validation block (seed 8, never the test block 9): planning

@@ -168,7 +168,7 @@ class DaggerCollector:
         if user is not None:
             user.reset(self.env.user_goal())
         states, qpos = [state_vector(obs)], [obs["agent"]["qpos"][0, :7].cpu().numpy()]
-        distances = [float(self.env.base.pregrasp_distance()[0])]
+        distances = [float(info["pregrasp_distance"][0])]
         outcome = "success" if bool(info["success"][0]) else "timeout"
         steps = 0
         while outcome != "success" and steps < self.config.max_steps:
@@ -183,7 +183,7 @@ class DaggerCollector:
             steps += 1
             states.append(state_vector(obs))
             qpos.append(obs["agent"]["qpos"][0, :7].cpu().numpy())
-            distances.append(float(self.env.base.pregrasp_distance()[0]))
+            distances.append(float(info["pregrasp_distance"][0]))
             if bool(info["collision"][0]):
                 outcome = "collision"
                 break

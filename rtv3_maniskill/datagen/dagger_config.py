@@ -19,8 +19,9 @@ FAILURE_WINDOW_STEPS = 20
 """A failed rollout's ``failure_relabels`` come from a window of 20 steps (1 s at 20 Hz)."""
 FAILURE_WINDOWS = ("last", "drift")
 """Where that window lies: ``"last"``, the rollout's last second (where it stalled or touched something);
-``"drift"``, the second from its closest approach to the pre-grasp (where it turned away: for a rollout
-that runs off, the states before it is far out of reach; the last second when it got closest at the end)."""
+``"drift"``, the second from its closest approach to the pre-grasp on (where it turned away: the last second
+of a rollout that ran off lies far out of reach; it is the last second again when the rollout got closest
+at its end)."""
 
 
 def parse_driver(spec: str) -> tuple[str, str | None]:
@@ -56,7 +57,7 @@ class DaggerConfig:
         targets_per_scene: seeded subset of each scene's grasp candidates (None = all).
         relabels_per_rollout: visited states re-planned per rollout (seeded, spread over the rollout).
         failure_relabels: 0, or the number of states re-planned from a failed rollout (contact or
-            timeout) instead of ``relabels_per_rollout``, all from its last
+            timeout) instead of ``relabels_per_rollout``, all from a window of
             :data:`FAILURE_WINDOW_STEPS` steps placed by ``failure_window``: where it went wrong, the
             recovery the expert shows.
         failure_window: one of :data:`FAILURE_WINDOWS`.
