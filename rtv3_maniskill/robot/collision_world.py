@@ -206,6 +206,10 @@ class PandaCollisionWorld:
         """
         return not pin.computeCollisions(self.model, self.data, self._broadphase, q, True)
 
+    def last_tcp_position(self) -> np.ndarray:
+        """``(3,)`` world TCP position (m) of the configuration last checked (a check runs its kinematics)."""
+        return pin.updateFramePlacement(self.model, self.data, self.kin.tcp_frame_id).translation
+
     def colliding_pairs(self, q, ignore_objects: Iterable[int] = ()) -> list[tuple[str, str]]:
         """Names of all geometry pairs in collision at ``q (7,)`` (diagnostics)."""
         q = as_joint_vector(q)

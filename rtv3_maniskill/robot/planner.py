@@ -290,15 +290,23 @@ class PandaPlanner:
     def _clearance_check(self, ends: np.ndarray):
         """OMPL's validity check for the clearance search: ``config.margins`` within
         ``config.clearance_release`` of the TCP positions ``ends (2, 3)`` (start, goal; m), ``config.clearance``
-        beyond (either world's ignore set is the one last set)."""
+        beyond (either world's ignore set is the one last set).
+
+        The clearance only adds to the margins, so a state that clears it is valid anywhere: most states of a
+        search are, and cost one check; only one that does not is placed (by that check's kinematics) and,
+        near an end, checked again under the margins alone.
+        """
         release2 = self.config.clearance_release ** 2
-        near_world, clear_world, kin = self.world, self._clear_world, self.kin
+        near_world, clear_world = self.world, self._clear_world
+        (sx, sy, sz), (gx, gy, gz) = np.asarray(ends, dtype=np.float64).tolist()
 
         def is_valid(q: np.ndarray) -> bool:
-            tcp = kin.forward_kinematics(q)[:3, 3]
-            if float(np.min(np.sum((ends - tcp) ** 2, axis=1))) < release2:
-                return near_world.check_fast(q)
-            return clear_world.check_fast(q)
+            if clear_world.check_fast(q):
+                return True
+            x, y, z = clear_world.last_tcp_position().tolist()
+            near = min((x - sx) ** 2 + (y - sy) ** 2 + (z - sz) ** 2,
+                       (x - gx) ** 2 + (y - gy) ** 2 + (z - gz) ** 2) < release2
+            return near and near_world.check_fast(q)
 
         return is_valid
 

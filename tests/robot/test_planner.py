@@ -230,6 +230,29 @@ def test_clearance_keeps_the_way_clear_and_the_targets_reachable(wall_planner, k
         PlannerConfig(clearance=0.001)  # below the margin the search must keep anyway
 
 
+def test_clearance_search_accepts_exactly_the_states_its_rule_names(wall_planner, kinematics):
+    """The clearance search's validity test (one check for a state that keeps the clearance) accepts a state
+    iff it clears the wall by the margins within ``clearance_release`` of the ends, by the clearance beyond."""
+    config = with_clearance(0.03)
+    planner = PandaPlanner(wall_planner.scene, config=config, kinematics=kinematics)
+    start, goal = planner.solve_ik(tcp_pose([0.0, -0.15, 0.05]), REST_QPOS), tcp_pose([0.0, 0.14, 0.05])
+    goal_q = planner.solve_ik(goal, REST_QPOS)
+    ends = np.stack([kinematics.forward_kinematics(start)[:3, 3], goal[:3, 3]])
+    is_valid = planner._clearance_check(ends)
+    near = PandaCollisionWorld(kinematics, planner.scene, config.margins)
+    clear = PandaCollisionWorld(kinematics, planner.scene, CollisionMargins(objects=0.03, table=config.margins.table))
+    rng = np.random.default_rng(0)
+    cases = set()
+    for q in np.linspace(start, goal_q, 60)[:, None] + rng.normal(scale=0.08, size=(60, 8, 7)):
+        for state in q:
+            tcp = kinematics.forward_kinematics(state)[:3, 3]
+            close = np.linalg.norm(ends - tcp, axis=1).min() < config.clearance_release
+            expected = near.is_collision_free(state) if close else clear.is_collision_free(state)
+            assert is_valid(state) == expected
+            cases.add((close, expected))
+    assert {(True, True), (False, True), (False, False)} <= cases, cases
+
+
 def test_start_in_the_joint_limit_margin_is_planned_from(wall_planner):
     """A visited state between a joint limit and the planner's bounds (``joint_limit_margin`` inside it) is
     planned from, not refused by OMPL (DAgger relabels start at such states)."""
