@@ -5,7 +5,7 @@ Usage: ``python benchmarks/benchmark_planner.py [--scenes 4] [--targets 8] [--se
 
 The demonstrations' planning problem as ``rtv3 generate --preset paper`` poses it: for each of ``--scenes`` scenes
 (seeds as ``rtv3 generate --seed``), ``--targets`` grasp candidates, a start drawn from the authors' start
-distribution (the first collision-free draw), the plan to the candidate's pre-grasp with the recorder's 3 s budget.
+distribution (the recorder's ``draw_start``), the plan to the candidate's pre-grasp with the recorder's 3 s budget.
 Only ``plan_to_pose`` is timed (IK, RRTConnect with the clearance search first, shortcutting, TOPP-RA); each repeat
 plans every problem again with the same seeds. Prints the median plan time per outcome and per repeat, and a digest
 of the found paths: planning is reproducible per seed, so two versions of the planner that find the same paths print
@@ -25,10 +25,10 @@ import torch
 
 import rtv3_maniskill  # noqa: F401  (registers GraspClutter-v1)
 from rtv3_maniskill import features
+from rtv3_maniskill.datagen.demonstrations import draw_start
 from rtv3_maniskill.presets import get_preset
 from rtv3_maniskill.robot.planner import PandaPlanner
 from rtv3_maniskill.robot.planner_config import with_clearance
-from rtv3_maniskill.robot.starts import random_start_configuration
 
 
 def problems(args: argparse.Namespace) -> list[tuple[PandaPlanner, np.ndarray, np.ndarray, int]]:
@@ -45,13 +45,10 @@ def problems(args: argparse.Namespace) -> list[tuple[PandaPlanner, np.ndarray, n
             planner = PandaPlanner(base.layouts[0], config=config)
             grasps = base.grasp_sets[0].poses
             for g in range(min(args.targets, len(grasps))):
-                rng = np.random.default_rng(scene_seed * 1000 + g)
-                for _ in range(100):
-                    q = random_start_configuration(rng, planner.kin.lower + 1e-3, planner.kin.upper - 1e-3)
-                    if planner.is_collision_free(q):
-                        pregrasp = features.pregrasp_poses(torch.from_numpy(np.asarray(grasps[g]))).numpy()
-                        out.append((planner, q, pregrasp, scene_seed * 1000 + g))
-                        break
+                q = draw_start(planner, np.random.default_rng(scene_seed * 1000 + g))
+                if q is not None:
+                    pregrasp = features.pregrasp_poses(torch.from_numpy(np.asarray(grasps[g]))).numpy()
+                    out.append((planner, q, pregrasp, scene_seed * 1000 + g))
     finally:
         env.close()
     return out

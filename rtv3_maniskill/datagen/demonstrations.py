@@ -97,6 +97,17 @@ def state_vector(obs: dict) -> np.ndarray:
     return features.observation_from_env(obs)[features.STATE][0].cpu().numpy()
 
 
+def draw_start(planner, rng: np.random.Generator) -> np.ndarray | None:
+    """The first collision-free ``(7,)`` draw (rad) of the authors' start distribution for ``planner``'s
+    scene in :data:`START_ATTEMPTS` tries, or None."""
+    kin = planner.kin
+    for _ in range(START_ATTEMPTS):
+        q = random_start_configuration(rng, kin.lower + 1e-3, kin.upper - 1e-3)
+        if planner.is_collision_free(q):
+            return q
+    return None
+
+
 class DemonstrationRecorder:
     """Plans and executes demonstrations in one ``GraspClutter-v1`` env (``pd_joint_pos_vel``).
 
@@ -147,14 +158,7 @@ class DemonstrationRecorder:
 
     def record(self, grasp_index: int, seed: int) -> Episode | str:
         """Demonstration toward grasp ``grasp_index`` of the loaded scene, or a failure reason."""
-        rng = np.random.default_rng(seed)
-        q_start = None
-        kin = self.planner.kin
-        for _ in range(START_ATTEMPTS):  # a collision-free draw of the start distribution
-            q = random_start_configuration(rng, kin.lower + 1e-3, kin.upper - 1e-3)
-            if self.planner.is_collision_free(q):
-                q_start = q
-                break
+        q_start = draw_start(self.planner, np.random.default_rng(seed))
         if q_start is None:
             return "no_start_pose"
         return self.record_from(q_start, grasp_index, seed)
